@@ -1,0 +1,36 @@
+# Two commands do all the set-up on a fresh machine:
+#   make demo   -- photometric stereo on built-in synthetic data
+#   make test   -- the test suite
+# Both create (or reuse) the virtual environment in $(VENV). torch comes from
+# the local CPU wheel (torch==2.13.0), never the CUDA build.
+VENV ?= .venv
+PYTHON ?= python3
+PY := $(VENV)/bin/python
+TORCH_SPEC ?= torch==2.13.0
+STAMP := $(VENV)/.torch_hsh_installed
+
+.PHONY: demo test test-fast bench env clean
+
+$(STAMP): setup.py
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e ".[test,examples]"
+	touch $(STAMP)
+
+env: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) examples/photometric_stereo.py $(ARGS)
+
+test: $(STAMP)
+	OMP_NUM_THREADS=2 $(PY) -m pytest -q $(ARGS)
+
+test-fast: $(STAMP)
+	OMP_NUM_THREADS=2 $(PY) -m pytest -q -m "not slow" $(ARGS)
+
+bench: $(STAMP)
+	$(PY) -m pip install -q -e ".[bench]"
+	$(PY) benchmarks/bench_basis.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,118 @@
+"""Input validation shared by every public entry point.
+
+All checks raise ``TypeError`` or ``ValueError`` naming the offending argument
+and what was expected. Data-dependent checks (NaN / Inf) need a device sync;
+they are skipped while ``torch.compile`` traces, and can be switched off
+globally with :func:`torch_hsh.set_validation` for hot loops on GPU.
+"""
+from __future__ import annotations
+
+import operator
+from typing import Optional, Sequence, Tuple
+
+import torch
+
+#: Largest order accepted by :func:`torch_hsh.hsh` and the isotropic basis.
+MAX_ORDER = 40
+#: Largest order accepted by the anisotropic basis (K(K+1)/2 grows as order**4).
+MAX_ANISOTROPIC_ORDER = 16
+
+_FLOAT_DTYPES = (torch.float32, torch.float64)
+
+_state = {"validate": True}
+
+
+def set_validation(enabled: bool) -> None:
+    """Globally enable or disable data-dependent input checks (NaN/Inf scans).
+
+    Shape, dtype, device and order checks are always performed; only the checks
+    that read tensor values (and therefore synchronise a CUDA stream) are
+    affected. Enabled by default.
+
+    Example:
+        >>> import torch_hsh
+        >>> torch_hsh.set_validation(False)  # inside a tight CUDA training loop
+        >>> torch_hsh.set_validation(True)
+    """
+    _state["validate"] = bool(enabled)
+
+
+def validation_enabled() -> bool:
+    """Whether data-dependent checks run (see :func:`set_validation`)."""
+    if not _state["validate"]:
+        return False
+    try:
+        if torch.compiler.is_compiling():
+            return False
+    except AttributeError:  # pragma: no cover - very old torch
+        pass
+    if torch.jit.is_tracing() or torch.jit.is_scripting():
+        return False
+    return True
+
+
+def check_order(order, name: str = "order", max_order: int = MAX_ORDER) -> int:
+    """Return ``order`` as a Python int or raise a clear error."""
+    if isinstance(order, bool) or isinstance(order, float):
+        raise TypeError(f"`{name}` must be a non-negative integer, got {order!r} ({type(order).__name__})")
+    if isinstance(order, torch.Tensor):
+        if order.numel() != 1 or order.is_floating_point() or order.is_complex():
+            raise TypeError(f"`{name}` must be a non-negative integer, got a tensor {order!r}")
+        order = int(order.item())
+    try:
+        order = operator.index(order)
+    except TypeError:
+        raise TypeError(f"`{name}` must be a non-negative integer, got {order!r} ({type(order).__name__})") from None
+    if order < 0:
+        raise ValueError(f"`{name}` must be >= 0, got {order}")
+    if order > max_order:
+        raise ValueError(f"`{name}` must be <= {max_order} (the supported maximum), got {order}")
+    return order
+
+
+def check_tensor(
+    x,
+    name: str,
+    last_dim: Optional[int] = None,
+    min_dims: int = 0,
+    allow_nonfinite: bool = False,
+    floating: bool = True,
+) -> torch.Tensor:
+    """Check type, dtype, trailing dimension and finiteness of one tensor."""
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"`{name}` must be a torch.Tensor, got {type(x).__name__}")
+    if floating and x.dtype not in _FLOAT_DTYPES:
+        raise TypeError(f"`{name}` must be float32 or float64, got dtype {x.dtype}")
+    if x.dim() < min_dims:
+        raise ValueError(f"`{name}` must have at least {min_dims} dimension(s), got shape {tuple(x.shape)}")
+    if last_dim is not None and (x.dim() == 0 or x.shape[-1] != last_dim):
+        raise ValueError(f"`{name}` must have shape (..., {last_dim}), got {tuple(x.shape)}")
+    if not allow_nonfinite and validation_enabled() and x.numel() > 0:
+        if not bool(torch.isfinite(x).all()):
+            bad = "NaN" if bool(torch.isnan(x).any()) else "Inf"
+            raise ValueError(f"`{name}` contains {bad} values; expected finite numbers")
+    return x
+
+
+def check_dirs(x, name: str) -> torch.Tensor:
+    """A (..., 3) float tensor of directions."""
+    return check_tensor(x, name, last_dim=3, min_dims=1)
+
+
+def check_same(tensors: Sequence[Tuple[str, torch.Tensor]]) -> None:
+    """All tensors on one device with one dtype."""
+    (n0, t0) = tensors[0]
+    for n, t in tensors[1:]:
+        if t.device != t0.device:
+            raise ValueError(f"`{n}` is on {t.device} but `{n0}` is on {t0.device}; move them to the same device")
+        if t.dtype != t0.dtype:
+            raise TypeError(f"`{n}` has dtype {t.dtype} but `{n0}` has dtype {t0.dtype}; use the same dtype")
+
+
+def broadcast_shapes(named: Sequence[Tuple[str, torch.Size]]) -> torch.Size:
+    """Broadcast leading shapes with an error that names the arguments."""
+    try:
+        return torch.broadcast_shapes(*[s for _, s in named])
+    except RuntimeError:
+        desc = ", ".join(f"`{n}` {tuple(s)}" for n, s in named)
+        raise ValueError(f"leading shapes do not broadcast: {desc}") from None

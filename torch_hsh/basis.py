@@ -1,0 +1,555 @@
+r"""Hemispherical harmonics (HSH) and the Helmholtz HSH-based BRDF bases.
+
+Conventions (see ``docs/conventions.md`` and the shared math notes):
+
+* Local frame: ``z`` is the surface normal; the hemisphere is ``z >= 0``.
+* Associated Legendre functions **without** the Condon–Shortley phase, shifted
+  to ``[0, 1]``: :math:`\tilde P_n^m(z) = P_n^m(2z - 1)`.
+* :math:`H_n^m = \tilde N_n^{|m|} \tilde P_n^{|m|}(\cos\theta)\,\Phi_m(\phi)` with
+  :math:`\Phi_m = \sqrt2\cos(m\phi)` (m > 0), 1 (m = 0),
+  :math:`(-1)^m\sqrt2\sin(|m|\phi)` (m < 0).
+* Flat HSH index ``n*n + n + m``.
+* Isotropic Helmholtz functions use the orthonormal normalisation
+  :math:`1/\sqrt{2 + 2\delta_{pr}}` for every q (erratum 1 of the math notes:
+  the printed Eq. 21 has an extra :math:`\sqrt2` for q > 0).
+
+Implementation: everything is evaluated from Cartesian components, without
+trigonometric functions and without dividing by :math:`\sin\theta`:
+
+.. math::
+    H_n^{\pm m} = \hat R_n^m(2z-1)\; s^m\, \{\mathrm{Re},\mathrm{Im}\}(x + i y)^m,
+    \qquad s = \sqrt{z / (1 + z)},
+
+where :math:`\hat R_n^m` is a normalised polynomial obtained from a stable
+three-term recurrence. The isotropic basis uses
+:math:`\mathrm{Re}(c^q)`, :math:`c = (x_i - i y_i)(x_o + i y_o)`, evaluated by a
+Chebyshev-like recurrence in :math:`\mathrm{Re}\,c = x_i x_o + y_i y_o` and
+:math:`|c|^2`; it is polynomial in the direction components, so it is smooth
+at the poles. Odd-m functions contain :math:`\sqrt z`, whose derivative is
+infinite at the horizon ``z = 0``: within ``eps`` of the horizon (1e-12 in
+float64, 1e-6 in float32) the derivative through that factor is cut to zero,
+so gradients stay finite everywhere; values stay exact.
+
+Inputs are normalised inside the functions. **Directions strictly below the
+horizon (z < 0) and zero-length vectors evaluate to 0, with zero gradient**:
+the bases are supported on the upper hemisphere only, as a BRDF is.
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from typing import Dict, List, Tuple
+
+import torch
+
+from ._checks import (
+    MAX_ANISOTROPIC_ORDER,
+    MAX_ORDER,
+    broadcast_shapes,
+    check_dirs,
+    check_order,
+    check_same,
+    check_tensor,
+)
+
+__all__ = [
+    "hsh",
+    "helmholtz_isotropic",
+    "helmholtz_isotropic_cosines",
+    "helmholtz_anisotropic",
+    "helmholtz_isotropic_world",
+    "isotropic_indices",
+    "anisotropic_indices",
+    "hsh_index",
+    "num_hsh",
+    "num_isotropic",
+    "num_anisotropic",
+]
+
+
+# --------------------------------------------------------------------------
+# Counting and index tables
+# --------------------------------------------------------------------------
+def num_hsh(order: int) -> int:
+    """Number of HSH functions up to ``order``: ``(order + 1)**2``."""
+    order = check_order(order)
+    return (order + 1) ** 2
+
+
+def num_isotropic(order: int) -> int:
+    """Number of isotropic Helmholtz functions up to ``order``: ``(P+1)(P+2)(P+3)/6``."""
+    order = check_order(order)
+    return (order + 1) * (order + 2) * (order + 3) // 6
+
+
+def num_anisotropic(order: int) -> int:
+    """Number of anisotropic Helmholtz functions up to ``order``: ``K(K+1)/2``, ``K=(P+1)**2``."""
+    order = check_order(order, max_order=MAX_ANISOTROPIC_ORDER)
+    k = (order + 1) ** 2
+    return k * (k + 1) // 2
+
+
+def hsh_index(n: int, m: int) -> int:
+    """Flat index ``n*n + n + m`` of :math:`H_n^m`.
+
+    Example:
+        >>> hsh_index(2, -1)
+        5
+    """
+    if not (0 <= abs(m) <= n):
+        raise ValueError(f"need -n <= m <= n, got n={n}, m={m}")
+    return n * n + n + m
+
+
+@lru_cache(maxsize=None)
+def _iso_list(order: int) -> Tuple[Tuple[int, int, int], ...]:
+    return tuple((p, r, q) for p in range(order + 1) for r in range(p + 1) for q in range(r + 1))
+
+
+@lru_cache(maxsize=None)
+def _aniso_list(order: int) -> Tuple[Tuple[int, int], ...]:
+    k = (order + 1) ** 2
+    return tuple((j, kk) for j in range(k) for kk in range(j, k))
+
+
+def isotropic_indices(order: int) -> torch.Tensor:
+    """Index table of the isotropic Helmholtz basis.
+
+    Returns:
+        LongTensor of shape ``(K, 3)`` with rows ``(p, r, q)``, ``p >= r >= q >= 0``,
+        ordered p-major (p, then r, then q ascending); ``K = (P+1)(P+2)(P+3)/6``.
+
+    Example:
+        >>> isotropic_indices(1).tolist()
+        [[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 1, 1]]
+    """
+    order = check_order(order)
+    return torch.tensor(_iso_list(order), dtype=torch.long).reshape(-1, 3)
+
+
+def anisotropic_indices(order: int) -> torch.Tensor:
+    """Index table of the anisotropic Helmholtz basis.
+
+    Returns:
+        LongTensor of shape ``(K(K+1)/2, 4)`` with rows ``(p, q, r, s)``: the pair of
+        HSH :math:`H_p^q` (flat index j) and :math:`H_r^s` (flat index k) with
+        ``j <= k``, ordered j-major then k ascending.
+
+    Example:
+        >>> anisotropic_indices(1)[:3].tolist()
+        [[0, 0, 0, 0], [0, 0, 1, -1], [0, 0, 1, 0]]
+    """
+    order = check_order(order, max_order=MAX_ANISOTROPIC_ORDER)
+    out = []
+    for j, k in _aniso_list(order):
+        p = int(math.isqrt(j))
+        r = int(math.isqrt(k))
+        out.append((p, j - p * p - p, r, k - r * r - r))
+    return torch.tensor(out, dtype=torch.long).reshape(-1, 4)
+
+
+# --------------------------------------------------------------------------
+# Constants (float64 on the host, cached per device/dtype)
+# --------------------------------------------------------------------------
+@lru_cache(maxsize=None)
+def _polar_consts(order: int):
+    """Recurrence constants of the normalised shifted Legendre table.
+
+    Column layout of the table: blocks j = n - m = 0..P, block j holding m = 0..P-j.
+    """
+    P = order
+    diag = []  # \hat R_m^m (constant)
+    for m in range(P + 1):
+        # sqrt((2m+1)/(2 pi)) * sqrt((2m)!) / m!
+        diag.append(math.sqrt((2 * m + 1) / (2 * math.pi)) * math.exp(0.5 * math.lgamma(2 * m + 1) - math.lgamma(m + 1)))
+    alpha = []  # per block j >= 1: coefficient of t * R_{n-1}
+    beta = []  # per block j >= 2: coefficient of R_{n-2}
+    for j in range(1, P + 1):
+        a_j, b_j = [], []
+        for m in range(P + 1 - j):
+            n = m + j - 1  # computing R_{n+1}^m from R_n^m, R_{n-1}^m
+            a_j.append(math.sqrt((2 * n + 1) * (2 * n + 3) / ((n + 1 - m) * (n + 1 + m))))
+            if j >= 2:
+                b_j.append(math.sqrt((2 * n + 3) / (2 * n - 1) * (n - m) * (n + m) / ((n + 1 - m) * (n + 1 + m))))
+        alpha.append(a_j)
+        beta.append(b_j)
+    offsets = []
+    off = 0
+    for j in range(P + 1):
+        offsets.append(off)
+        off += P + 1 - j
+    col = {}
+    for j in range(P + 1):
+        for m in range(P + 1 - j):
+            col[(m + j, m)] = offsets[j] + m
+    return diag, alpha, beta, col
+
+
+@lru_cache(maxsize=None)
+def _hsh_gather(order: int):
+    """Columns of the polar table and of the azimuth table for each flat HSH index."""
+    P = order
+    _, _, _, col = _polar_consts(P)
+    ridx, aidx = [], []
+    for n in range(P + 1):
+        for m in range(-n, n + 1):
+            ridx.append(col[(n, abs(m))])
+            aidx.append(m if m >= 0 else P - m)  # A_0..A_P, then B_1..B_P at P+1..2P
+    az_scale = [1.0] + [math.sqrt(2.0)] * P + [(-1.0) ** m * math.sqrt(2.0) for m in range(1, P + 1)]
+    return ridx, aidx, az_scale
+
+
+@lru_cache(maxsize=None)
+def _iso_gather(order: int):
+    P = order
+    _, _, _, col = _polar_consts(P)
+    ia, ib, c = [], [], []
+    for p, r, q in _iso_list(P):
+        ia.append(col[(p, q)])
+        ib.append(col[(r, q)])
+        c.append(0.5 if p == r else 1.0 / math.sqrt(2.0))
+    # m of every polar-table column (to attach the azimuthal factor G_q)
+    qcol = [0] * len(col)
+    for (n, m), cc in col.items():
+        qcol[cc] = m
+    g_scale = [1.0] + [math.sqrt(2.0)] * P
+    return ia, ib, c, qcol, g_scale
+
+
+@lru_cache(maxsize=None)
+def _aniso_gather(order: int):
+    pairs = _aniso_list(order)
+    j = [a for a, _ in pairs]
+    k = [b for _, b in pairs]
+    c = [0.5 if a == b else 1.0 / math.sqrt(2.0) for a, b in pairs]
+    return j, k, c
+
+
+_DEVICE_CACHE: Dict[tuple, torch.Tensor] = {}
+
+
+def _const(key: tuple, values, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """Cached constant tensor on ``device``/``dtype``."""
+    full = key + (str(device), dtype)
+    t = _DEVICE_CACHE.get(full)
+    if t is None:
+        t = torch.tensor(values, dtype=dtype if dtype is not None else torch.long, device=device)
+        _DEVICE_CACHE[full] = t
+    return t
+
+
+def _horizon_eps(dtype: torch.dtype) -> float:
+    return 1e-12 if dtype == torch.float64 else 1e-6
+
+
+# --------------------------------------------------------------------------
+# Kernels (flat (N,) inputs, no validation)
+# --------------------------------------------------------------------------
+def _unit(d: torch.Tensor):
+    """Normalise (N, 3) directions; returns x, y, z and the validity mask.
+
+    Zero vectors stay zero (and are flagged invalid) with finite gradients.
+    """
+    n2 = (d * d).sum(-1)
+    tiny = torch.finfo(d.dtype).tiny * 1e6
+    ok = n2 > tiny
+    inv = torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2)))
+    u = d * inv.unsqueeze(-1)
+    x, y, z = u.unbind(-1)
+    valid = ok & (z >= 0)
+    return x, y, z, valid
+
+
+def _safe_s(z: torch.Tensor) -> torch.Tensor:
+    """s = sqrt(z / (1 + z)) for z >= 0, exact value, derivative cut within eps of z = 0."""
+    eps = _horizon_eps(z.dtype)
+    zp = z.clamp(min=0.0)
+    live = torch.sqrt(zp.clamp(min=eps) / (1.0 + zp))
+    frozen = torch.sqrt(zp.detach() / (1.0 + zp.detach()))
+    return torch.where(zp > eps, live, frozen)
+
+
+def _polar_table(z: torch.Tensor, order: int) -> torch.Tensor:
+    """Normalised shifted-Legendre table, (N, L) with L = (P+1)(P+2)/2 (block layout)."""
+    diag, alpha, beta, _ = _polar_consts(order)
+    dev, dt = z.device, z.dtype
+    t = (2.0 * z - 1.0).unsqueeze(-1)
+    d0 = _const(("diag", order), diag, dev, dt)
+    blocks = [d0.expand(z.shape[0], order + 1)]
+    if order >= 1:
+        a1 = _const(("alpha", order, 1), alpha[0], dev, dt)
+        blocks.append(t * (a1 * d0[:order]))
+    for j in range(2, order + 1):
+        mj = order + 1 - j
+        aj = _const(("alpha", order, j), alpha[j - 1], dev, dt)
+        bj = _const(("beta", order, j), beta[j - 1], dev, dt)
+        blocks.append((t * aj) * blocks[j - 1][:, :mj] - bj * blocks[j - 2][:, :mj])
+    return torch.cat(blocks, dim=-1)
+
+
+def _azimuth_table(x, y, z, valid, order: int) -> torch.Tensor:
+    """(N, 2P+1): [s^m Re(x+iy)^m for m=0..P, s^m Im(x+iy)^m for m=1..P], masked and scaled."""
+    P = order
+    _, _, az_scale = _hsh_gather(P)
+    mask = valid.to(z.dtype)
+    re = [mask]
+    im = []
+    if P >= 1:
+        s = _safe_s(z)
+        u = s * x
+        w = s * y
+        cr, ci = u * mask, w * mask
+        re.append(cr)
+        im.append(ci)
+        for _ in range(2, P + 1):
+            cr, ci = cr * u - ci * w, cr * w + ci * u
+            re.append(cr)
+            im.append(ci)
+    tab = torch.stack(re + im, dim=-1)
+    return tab * _const(("azs", P), az_scale, z.device, z.dtype)
+
+
+def _hsh_flat(d: torch.Tensor, order: int) -> torch.Tensor:
+    x, y, z, valid = _unit(d)
+    R = _polar_table(z, order)
+    A = _azimuth_table(x, y, z, valid, order)
+    ridx, aidx, _ = _hsh_gather(order)
+    ri = _const(("hsh_r", order), ridx, d.device, None)
+    ai = _const(("hsh_a", order), aidx, d.device, None)
+    return R.index_select(-1, ri) * A.index_select(-1, ai)
+
+
+def _iso_kernel(zi, zo, a, rho, sio, valid, order: int) -> torch.Tensor:
+    """Isotropic Helmholtz basis from cos(theta_i), cos(theta_o), Re c, |c|^2 and s_i s_o.
+
+    ``a = sin_i sin_o cos(dphi)``, ``rho = sin_i^2 sin_o^2``, ``sio = s_i s_o``.
+    """
+    P = order
+    ia, ib, c, qcol, g_scale = _iso_gather(P)
+    dev, dt = zi.device, zi.dtype
+    mask = valid.to(dt)
+    # G_q = (s_i s_o)^q Re(c^q) (times sqrt 2 for q > 0), via V_{q+1} = 2 a' V_q - rho' V_{q-1}
+    G = [mask]
+    if P >= 1:
+        a1 = sio * a
+        r1 = sio * sio * rho
+        G.append(a1 * mask)
+        for _ in range(2, P + 1):
+            G.append(2.0 * a1 * G[-1] - r1 * G[-2])
+    G = torch.stack(G, dim=-1) * _const(("gsc", P), g_scale, dev, dt)
+    Ri = _polar_table(zi, P)
+    Ro = _polar_table(zo, P) * G.index_select(-1, _const(("qcol", P), qcol, dev, None))
+    ia_t = _const(("iso_a", P), ia, dev, None)
+    ib_t = _const(("iso_b", P), ib, dev, None)
+    out = Ri.index_select(-1, ia_t) * Ro.index_select(-1, ib_t)
+    out = out.addcmul(Ri.index_select(-1, ib_t), Ro.index_select(-1, ia_t))
+    return out * _const(("iso_c", P), c, dev, dt)
+
+
+def _broadcast_pair(wi: torch.Tensor, wo: torch.Tensor):
+    lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
+    wi = wi.expand(*lead, 3).reshape(-1, 3)
+    wo = wo.expand(*lead, 3).reshape(-1, 3)
+    return lead, wi, wo
+
+
+# --------------------------------------------------------------------------
+# Public functions
+# --------------------------------------------------------------------------
+def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
+    r"""Real hemispherical harmonics up to ``order``.
+
+    Args:
+        dirs: ``(..., 3)`` directions in the local frame (z = normal); they are
+            normalised here. Directions with ``z < 0`` and zero vectors give 0.
+        order: maximum order ``P >= 0`` (at most 40).
+
+    Returns:
+        ``(..., (P+1)**2)`` tensor; entry ``n*n + n + m`` is :math:`H_n^m`.
+        Same dtype and device as ``dirs``; differentiable.
+
+    Example:
+        >>> import torch, torch_hsh
+        >>> y = torch_hsh.hsh(torch.tensor([0.0, 0.0, 1.0]), order=2)
+        >>> y.shape
+        torch.Size([9])
+        >>> float(y[0]) == (1 / (2 * math.pi)) ** 0.5
+        True
+    """
+    check_dirs(dirs, "dirs")
+    order = check_order(order)
+    lead = dirs.shape[:-1]
+    out = _hsh_flat(dirs.reshape(-1, 3), order)
+    return out.reshape(*lead, (order + 1) ** 2)
+
+
+def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
+    r"""Isotropic Helmholtz HSH basis :math:`\mathcal H_{pr}^q(\omega_i, \omega_o)`.
+
+    .. math::
+        \mathcal H_{pr}^q = \frac{1}{\sqrt{2 + 2\delta_{pr}}}
+        [\Theta_p^q(\theta_i)\Theta_r^q(\theta_o) + \Theta_r^q(\theta_i)\Theta_p^q(\theta_o)]
+        \Phi_q(\phi_o - \phi_i)
+
+    orthonormal over :math:`\Omega_i \times \Omega_o` (erratum 1 applied).
+
+    Args:
+        wi: ``(..., 3)`` incident directions, local frame.
+        wo: ``(..., 3)`` outgoing directions, local frame; broadcast with ``wi``.
+        order: maximum order ``P``.
+
+    Returns:
+        ``(..., K)``, ``K = (P+1)(P+2)(P+3)/6``, columns in the order of
+        :func:`isotropic_indices` (p-major over ``p >= r >= q >= 0``).
+        Zero where either direction is below the horizon or zero.
+
+    Example:
+        >>> wi = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1).abs()
+        >>> wo = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1).abs()
+        >>> torch_hsh.helmholtz_isotropic(wi, wo, 3).shape
+        torch.Size([10, 20])
+    """
+    check_dirs(wi, "wi")
+    check_dirs(wo, "wo")
+    check_same([("wi", wi), ("wo", wo)])
+    order = check_order(order)
+    lead, wi, wo = _broadcast_pair(wi, wo)
+    xi, yi, zi, vi = _unit(wi)
+    xo, yo, zo, vo = _unit(wo)
+    a = xi * xo + yi * yo
+    rho = (xi * xi + yi * yi) * (xo * xo + yo * yo)
+    sio = _safe_s(zi) * _safe_s(zo) if order >= 1 else zi
+    out = _iso_kernel(zi, zo, a, rho, sio, vi & vo, order)
+    return out.reshape(*lead, out.shape[-1])
+
+
+def helmholtz_isotropic_cosines(
+    cos_i: torch.Tensor, cos_o: torch.Tensor, cos_dphi: torch.Tensor, order: int
+) -> torch.Tensor:
+    r"""Isotropic Helmholtz basis from the isotropic triple.
+
+    Args:
+        cos_i: ``(...)`` :math:`\cos\theta_i` in ``[0, 1]`` (values < 0 give 0).
+        cos_o: ``(...)`` :math:`\cos\theta_o`.
+        cos_dphi: ``(...)`` :math:`\cos(\phi_o - \phi_i)` in ``[-1, 1]``; any value is
+            fine where a direction is parallel to the normal.
+        order: maximum order ``P``.
+
+    Returns:
+        ``(..., K)`` exactly as :func:`helmholtz_isotropic` for the same geometry.
+
+    Example:
+        >>> c = torch.tensor([0.5])
+        >>> torch_hsh.helmholtz_isotropic_cosines(c, c, torch.tensor([-1.0]), 2).shape
+        torch.Size([1, 10])
+    """
+    for n, t in (("cos_i", cos_i), ("cos_o", cos_o), ("cos_dphi", cos_dphi)):
+        check_tensor(t, n)
+    check_same([("cos_i", cos_i), ("cos_o", cos_o), ("cos_dphi", cos_dphi)])
+    order = check_order(order)
+    lead = broadcast_shapes([("cos_i", cos_i.shape), ("cos_o", cos_o.shape), ("cos_dphi", cos_dphi.shape)])
+    zi, zo, cd = (t.expand(lead).reshape(-1) for t in (cos_i, cos_o, cos_dphi))
+    valid = (zi >= 0) & (zo >= 0) & (zi <= 1) & (zo <= 1)
+    zi_c = zi.clamp(0.0, 1.0)
+    zo_c = zo.clamp(0.0, 1.0)
+    rho = (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c)
+    eps = _horizon_eps(zi.dtype)
+    sin_prod = torch.where(rho > eps, torch.sqrt(rho.clamp(min=eps)), torch.sqrt(rho.detach()))
+    a = sin_prod * cd.clamp(-1.0, 1.0)
+    sio = _safe_s(zi_c) * _safe_s(zo_c)
+    out = _iso_kernel(zi_c, zo_c, a, rho, sio, valid, order)
+    return out.reshape(*lead, out.shape[-1])
+
+
+def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
+    r"""Anisotropic (general) Helmholtz HSH basis.
+
+    .. math::
+        \mathcal H_{jk} = \frac{1}{\sqrt{2 + 2\delta_{jk}}}[H_j(\omega_i) H_k(\omega_o) + H_k(\omega_i) H_j(\omega_o)]
+
+    for flat HSH indices ``j <= k``.
+
+    Args:
+        wi: ``(..., 3)`` incident directions, local frame.
+        wo: ``(..., 3)`` outgoing directions; broadcast with ``wi``.
+        order: maximum HSH order ``P`` (at most 16).
+
+    Returns:
+        ``(..., K(K+1)/2)`` with ``K = (P+1)**2``, columns ordered as
+        :func:`anisotropic_indices` (pairs ``j <= k``, j-major).
+
+    Example:
+        >>> w = torch.tensor([[0.0, 0.6, 0.8]])
+        >>> torch_hsh.helmholtz_anisotropic(w, w, 1).shape
+        torch.Size([1, 10])
+    """
+    check_dirs(wi, "wi")
+    check_dirs(wo, "wo")
+    check_same([("wi", wi), ("wo", wo)])
+    order = check_order(order, max_order=MAX_ANISOTROPIC_ORDER)
+    lead, wi, wo = _broadcast_pair(wi, wo)
+    Hi = _hsh_flat(wi, order)
+    Ho = _hsh_flat(wo, order)
+    j, k, c = _aniso_gather(order)
+    dev, dt = Hi.device, Hi.dtype
+    jt = _const(("an_j", order), j, dev, None)
+    kt = _const(("an_k", order), k, dev, None)
+    out = Hi.index_select(-1, jt) * Ho.index_select(-1, kt)
+    out = out.addcmul(Hi.index_select(-1, kt), Ho.index_select(-1, jt))
+    out = out * _const(("an_c", order), c, dev, dt)
+    return out.reshape(*lead, out.shape[-1])
+
+
+def helmholtz_isotropic_world(
+    wi: torch.Tensor, wo: torch.Tensor, normal: torch.Tensor, order: int
+) -> torch.Tensor:
+    r"""Isotropic Helmholtz basis from world-space directions and a normal.
+
+    Needs no tangent frame: the isotropic basis depends only on
+    :math:`n\cdot\omega_i`, :math:`n\cdot\omega_o` and the tangential dot product
+    :math:`\omega_i\cdot\omega_o - (n\cdot\omega_i)(n\cdot\omega_o)`, and is a smooth
+    function of all three (polynomial apart from the horizon factor), so the
+    gradient with respect to ``normal`` is well defined even when a direction is
+    parallel to the normal. This is the entry point for photometric stereo.
+
+    Args:
+        wi: ``(..., 3)`` incident (light) directions, world frame.
+        wo: ``(..., 3)`` outgoing (view) directions, world frame.
+        normal: ``(..., 3)`` surface normals; all three broadcast together.
+        order: maximum order ``P``.
+
+    Returns:
+        ``(..., K)`` equal to ``helmholtz_isotropic(to_local(wi), to_local(wo), P)``.
+
+    Example:
+        >>> n = torch.tensor([0.0, 0.0, 1.0])
+        >>> l = torch.tensor([[0.3, 0.0, 0.95]])
+        >>> torch_hsh.helmholtz_isotropic_world(l, n, n, 2).shape
+        torch.Size([1, 10])
+    """
+    for nm, t in (("wi", wi), ("wo", wo), ("normal", normal)):
+        check_dirs(t, nm)
+    check_same([("wi", wi), ("wo", wo), ("normal", normal)])
+    order = check_order(order)
+    lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1]), ("normal", normal.shape[:-1])])
+    wi, wo, nrm = (t.expand(*lead, 3).reshape(-1, 3) for t in (wi, wo, normal))
+    wi = _normalize3(wi)
+    wo = _normalize3(wo)
+    nrm = _normalize3(nrm)
+    zi = (wi * nrm).sum(-1)
+    zo = (wo * nrm).sum(-1)
+    valid = (zi >= 0) & (zo >= 0) & ((nrm * nrm).sum(-1) > 0.5) & ((wi * wi).sum(-1) > 0.5) & ((wo * wo).sum(-1) > 0.5)
+    zi_c = zi.clamp(0.0, 1.0)
+    zo_c = zo.clamp(0.0, 1.0)
+    a = (wi * wo).sum(-1) - zi * zo
+    rho = (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c)
+    sio = _safe_s(zi_c) * _safe_s(zo_c)
+    out = _iso_kernel(zi_c, zo_c, a, rho, sio, valid, order)
+    return out.reshape(*lead, out.shape[-1])
+
+
+def _normalize3(d: torch.Tensor) -> torch.Tensor:
+    """Normalise (N, 3) vectors; zero vectors stay zero with finite gradients."""
+    n2 = (d * d).sum(-1, keepdim=True)
+    ok = n2 > torch.finfo(d.dtype).tiny * 1e6
+    return d * torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2)))
