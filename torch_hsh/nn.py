@@ -1,0 +1,471 @@
+r"""``torch.nn.Module`` layers built on the Helmholtz HSH bases.
+
+* :class:`HSH` — hemispherical harmonics of a batch of directions, a thin
+  wrapper of :func:`torch_hsh.hsh` (useful as a fixed feature layer).
+* :class:`HelmholtzBRDF` — a reciprocal BRDF :math:`f(\omega_i, \omega_o) =
+  \sum_k a_k \mathcal H_k(\omega_i, \omega_o)` with learnable (or fixed)
+  coefficients, one set per colour channel, optionally supplied per call
+  (per-pixel BRDFs predicted by a network).
+
+Both modules are device/dtype agnostic (``.to(...)`` moves everything), save
+and load through ``state_dict``, and work with ``torch.jit.trace`` and
+``torch.compile``. ``torch.jit.script`` is **not** supported: the functional
+bases they call validate their inputs in plain Python (``isinstance`` checks,
+``functools.lru_cache`` constant tables, a global validation switch), which
+TorchScript cannot compile. Use ``torch.jit.trace`` (or ``torch.compile``)
+instead.
+
+Conventions are those of :mod:`torch_hsh.basis`: directions in the local
+frame with ``z`` along the normal; a direction below the horizon (``z < 0``) or
+a zero vector makes the BRDF 0.
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from typing import Optional, Sequence, Tuple, Union
+
+import torch
+from torch import nn
+
+from ._checks import MAX_ANISOTROPIC_ORDER, check_order, check_tensor
+from .basis import (
+    anisotropic_indices,
+    helmholtz_anisotropic,
+    helmholtz_isotropic,
+    helmholtz_isotropic_world,
+    hsh,
+    isotropic_indices,
+    num_anisotropic,
+    num_hsh,
+    num_isotropic,
+)
+
+__all__ = ["HSH", "HelmholtzBRDF"]
+
+
+class HSH(nn.Module):
+    r"""Real hemispherical harmonics up to ``order`` as a module.
+
+    ``forward(dirs)`` is :func:`torch_hsh.hsh` with a fixed order: it maps
+    ``(..., 3)`` local-frame directions (normalised internally; ``z < 0`` and
+    zero vectors give 0) to ``(..., (order+1)**2)`` values, entry
+    ``n*n + n + m`` being :math:`H_n^m`. The module has no parameters.
+
+    Args:
+        order: maximum order ``P >= 0`` (at most 40).
+
+    Example:
+        >>> import torch, torch_hsh
+        >>> layer = torch_hsh.HSH(2)
+        >>> layer(torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])).shape
+        torch.Size([2, 9])
+    """
+
+    def __init__(self, order: int) -> None:
+        super().__init__()
+        self.order = check_order(order)
+
+    @property
+    def num_functions(self) -> int:
+        """Number of output features, ``(order + 1)**2``."""
+        return num_hsh(self.order)
+
+    def forward(self, dirs: torch.Tensor) -> torch.Tensor:
+        """``(..., 3)`` directions -> ``(..., (order+1)**2)`` HSH values."""
+        return hsh(dirs, self.order)
+
+    def extra_repr(self) -> str:
+        return f"order={self.order}, num_functions={self.num_functions}"
+
+
+# --------------------------------------------------------------------------
+# Closed-form directional albedo tables
+# --------------------------------------------------------------------------
+# Hemispherical integral of Theta_n^0(theta) cos(theta) dw:
+#   2 pi * sqrt((2n+1)/(2 pi)) * int_0^1 P~_n(x) x dx, the integral being
+#   1/2 (n = 0), 1/6 (n = 1), 0 (n >= 2).
+_COS_MOMENT = {0: math.sqrt(2.0 * math.pi) / 2.0, 1: math.sqrt(6.0 * math.pi) / 6.0}
+
+
+@lru_cache(maxsize=None)
+def _albedo_terms(order: int, isotropic: bool) -> Tuple[Tuple[int, ...], Tuple[int, ...], Tuple[float, ...]]:
+    r"""Sparse map from (HSH column of wo, coefficient column) to a weight.
+
+    ``albedo(wo) = sum_e w_e * H_{h_e}(wo) * a_{c_e}``. See
+    :meth:`HelmholtzBRDF.albedo` for the derivation.
+    """
+    h_idx, c_idx, w = [], [], []
+    if isotropic:
+        rows = isotropic_indices(order).tolist()
+        for col, (p, r, q) in enumerate(rows):
+            if q != 0:
+                continue
+            npr = 1.0 / math.sqrt(2.0 + 2.0 * (p == r))
+            # N_pr [I_p Theta_r(wo) + I_r Theta_p(wo)];  Theta_n^0 = H_n^0 (flat index n*n + n)
+            if p in _COS_MOMENT:
+                h_idx.append(r * r + r)
+                c_idx.append(col)
+                w.append(npr * _COS_MOMENT[p])
+            if r in _COS_MOMENT:
+                h_idx.append(p * p + p)
+                c_idx.append(col)
+                w.append(npr * _COS_MOMENT[r])
+    else:
+        rows = anisotropic_indices(order).tolist()
+        for col, (p, q, r, s) in enumerate(rows):
+            j = p * p + p + q
+            k = r * r + r + s
+            njk = 1.0 / math.sqrt(2.0 + 2.0 * (j == k))
+            # N [J_j H_k(wo) + J_k H_j(wo)], J_n^m = I_n if m == 0 and n <= 1 else 0
+            if q == 0 and p in _COS_MOMENT:
+                h_idx.append(k)
+                c_idx.append(col)
+                w.append(njk * _COS_MOMENT[p])
+            if s == 0 and r in _COS_MOMENT:
+                h_idx.append(j)
+                c_idx.append(col)
+                w.append(njk * _COS_MOMENT[r])
+    return tuple(h_idx), tuple(c_idx), tuple(w)
+
+
+_InitType = Union[str, torch.Tensor]
+
+
+class HelmholtzBRDF(nn.Module):
+    r"""A reciprocal BRDF expanded in the Helmholtz HSH basis.
+
+    .. math::
+        f_c(\omega_i, \omega_o) = \sum_{k=0}^{K-1} a_{c,k}\, \mathcal H_k(\omega_i, \omega_o),
+        \qquad c = 0, \dots, C-1.
+
+    Every basis function is reciprocal, so the module output satisfies
+    :math:`f(\omega_i, \omega_o) = f(\omega_o, \omega_i)` exactly, for any
+    coefficients.
+
+    Args:
+        order: maximum order ``P`` of the basis (isotropic: at most 40,
+            anisotropic: at most 16).
+        isotropic: ``True`` (default) for the isotropic basis
+            (:func:`torch_hsh.helmholtz_isotropic`,
+            ``K = (P+1)(P+2)(P+3)/6`` columns in the order of
+            :func:`torch_hsh.isotropic_indices`); ``False`` for the general
+            basis (:func:`torch_hsh.helmholtz_anisotropic`,
+            ``K = Q(Q+1)/2``, ``Q = (P+1)**2``, order of
+            :func:`torch_hsh.anisotropic_indices`).
+        channels: number of output channels ``C`` (e.g. 3 for RGB).
+        init: ``"lambertian"`` (default): only :math:`a_{00}^0 = 2\rho` is
+            non-zero, so the module starts as the Lambertian BRDF
+            :math:`\rho/\pi` (because :math:`\mathcal H_{00}^0 = 1/(2\pi)`);
+            ``"zeros"``; or a tensor of shape ``(C, K)`` or ``(K,)`` (copied,
+            repeated over channels) with the initial coefficients.
+        rho: Lambertian albedo used by ``init="lambertian"``: a float or a
+            sequence of ``C`` floats. Default 0.5.
+        learnable: if ``True`` (default) the coefficients are an
+            ``nn.Parameter``; otherwise a buffer (still saved in the
+            ``state_dict`` and moved by ``.to``).
+        nonnegative: if ``True``, the output of :meth:`forward` /
+            :meth:`forward_world` is clamped at 0 in the forward pass with a
+            **straight-through gradient**: the value is ``max(f, 0)`` but the
+            gradient is that of ``f``, so a sample clamped to 0 can still be
+            pulled back up by the loss (a plain ``clamp`` would give it zero
+            gradient). Values where ``f >= 0`` are unchanged, so a band-limited
+            non-negative fit and the Lambertian init are exact.
+            :meth:`albedo` and :meth:`basis` ignore the clamp. Default False.
+        dtype, device: of the coefficient tensor (default: torch defaults).
+
+    Attributes:
+        coefficients: ``(C, K)`` tensor (parameter or buffer).
+
+    Shapes:
+        ``forward(wi, wo, coeffs=None)``: ``wi``, ``wo`` ``(..., 3)``
+        (broadcast together) -> ``(..., C)``. ``coeffs`` optionally replaces
+        the module's coefficients for this call: ``(C, K)``, or
+        ``(..., C, K)`` whose leading dimensions broadcast with those of the
+        directions (e.g. one BRDF per pixel predicted by a network).
+
+    Example:
+        >>> import torch, torch_hsh
+        >>> brdf = torch_hsh.HelmholtzBRDF(order=3, channels=3)
+        >>> wi = torch.tensor([[0.0, 0.6, 0.8]])
+        >>> wo = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> brdf(wi, wo).detach()  # Lambertian rho / pi = 0.5 / pi
+        tensor([[0.1592, 0.1592, 0.1592]])
+    """
+
+    def __init__(
+        self,
+        order: int,
+        isotropic: bool = True,
+        channels: int = 1,
+        init: _InitType = "lambertian",
+        rho: Union[float, Sequence[float]] = 0.5,
+        learnable: bool = True,
+        nonnegative: bool = False,
+        dtype: Optional[torch.dtype] = None,
+        device: Optional[Union[str, torch.device]] = None,
+    ) -> None:
+        super().__init__()
+        if not isinstance(isotropic, bool):
+            raise TypeError(f"`isotropic` must be a bool, got {type(isotropic).__name__}")
+        if not isinstance(learnable, bool):
+            raise TypeError(f"`learnable` must be a bool, got {type(learnable).__name__}")
+        if not isinstance(nonnegative, bool):
+            raise TypeError(f"`nonnegative` must be a bool, got {type(nonnegative).__name__}")
+        if isotropic:
+            order = check_order(order)
+            k = num_isotropic(order)
+        else:
+            order = check_order(order, max_order=MAX_ANISOTROPIC_ORDER)
+            k = num_anisotropic(order)
+        if isinstance(channels, bool) or not isinstance(channels, int) or channels < 1:
+            raise ValueError(f"`channels` must be a positive integer, got {channels!r}")
+        if dtype is None:
+            dtype = torch.get_default_dtype()
+        if dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"`dtype` must be torch.float32 or torch.float64, got {dtype}")
+        self.order = order
+        self.isotropic = isotropic
+        self.channels = channels
+        self.nonnegative = nonnegative
+        self.learnable = learnable
+
+        coeffs = self._initial_coefficients(init, rho, channels, k, dtype, device)
+        if learnable:
+            self.coefficients = nn.Parameter(coeffs)
+        else:
+            self.register_buffer("coefficients", coeffs)
+
+    # ------------------------------------------------------------------ init
+    @staticmethod
+    def _initial_coefficients(init, rho, channels, k, dtype, device) -> torch.Tensor:
+        if isinstance(init, torch.Tensor):
+            check_tensor(init, "init")
+            if init.shape == (k,):
+                init = init.unsqueeze(0).expand(channels, k)
+            if tuple(init.shape) != (channels, k):
+                raise ValueError(
+                    f"`init` tensor must have shape ({channels}, {k}) or ({k},) "
+                    f"(channels, number of basis functions), got {tuple(init.shape)}"
+                )
+            return init.detach().to(dtype=dtype, device=device).clone()
+        if not isinstance(init, str):
+            raise TypeError(f"`init` must be 'lambertian', 'zeros' or a tensor, got {type(init).__name__}")
+        out = torch.zeros(channels, k, dtype=dtype, device=device)
+        if init == "zeros":
+            return out
+        if init != "lambertian":
+            raise ValueError(f"`init` must be 'lambertian', 'zeros' or a tensor, got {init!r}")
+        if isinstance(rho, (int, float)) and not isinstance(rho, bool):
+            rho_t = torch.full((channels,), float(rho), dtype=dtype, device=device)
+        else:
+            try:
+                rho_t = torch.as_tensor(rho, dtype=dtype, device=device).reshape(-1)
+            except (TypeError, ValueError, RuntimeError):
+                raise TypeError(f"`rho` must be a float or a sequence of {channels} floats, got {rho!r}") from None
+            if rho_t.numel() != channels:
+                raise ValueError(f"`rho` must be a float or a sequence of {channels} floats, got {rho_t.numel()} values")
+        # Column 0 is (p, r, q) = (0, 0, 0) in the isotropic basis and the pair
+        # (H_0^0, H_0^0) in the anisotropic one; both equal 1 / (2 pi).
+        out[:, 0] = 2.0 * rho_t
+        return out
+
+    # ------------------------------------------------------------ properties
+    @property
+    def num_coefficients(self) -> int:
+        """Number of basis functions ``K`` per channel."""
+        return int(self.coefficients.shape[-1])
+
+    @property
+    def indices(self) -> torch.Tensor:
+        """Index table of the basis columns: ``(K, 3)`` rows ``(p, r, q)`` if isotropic,
+        else ``(K, 4)`` rows ``(p, q, r, s)`` (see :func:`torch_hsh.isotropic_indices` /
+        :func:`torch_hsh.anisotropic_indices`)."""
+        return isotropic_indices(self.order) if self.isotropic else anisotropic_indices(self.order)
+
+    def extra_repr(self) -> str:
+        kind = "isotropic" if self.isotropic else "anisotropic"
+        return (
+            f"order={self.order}, {kind}, channels={self.channels}, "
+            f"num_coefficients={self.num_coefficients}, learnable={self.learnable}, "
+            f"nonnegative={self.nonnegative}"
+        )
+
+    # --------------------------------------------------------------- helpers
+    def _check_like(self, t: torch.Tensor, name: str) -> None:
+        c = self.coefficients
+        if t.dtype != c.dtype:
+            raise TypeError(
+                f"`{name}` has dtype {t.dtype} but the module's coefficients are {c.dtype}; "
+                f"convert the input or call module.to({t.dtype})"
+            )
+        if t.device != c.device:
+            raise ValueError(
+                f"`{name}` is on {t.device} but the module's coefficients are on {c.device}; "
+                f"move the input or call module.to({str(t.device)!r})"
+            )
+
+    def _resolve_coeffs(self, coeffs: Optional[torch.Tensor], ref: torch.Tensor) -> torch.Tensor:
+        if coeffs is None:
+            return self.coefficients
+        check_tensor(coeffs, "coeffs", min_dims=2)
+        k = self.num_coefficients
+        if coeffs.shape[-1] != k or coeffs.shape[-2] != self.channels:
+            raise ValueError(
+                f"`coeffs` must have shape (..., {self.channels}, {k}) (channels, number of basis "
+                f"functions for order={self.order}, isotropic={self.isotropic}), got {tuple(coeffs.shape)}"
+            )
+        if coeffs.dtype != ref.dtype:
+            raise TypeError(f"`coeffs` has dtype {coeffs.dtype} but the directions are {ref.dtype}")
+        if coeffs.device != ref.device:
+            raise ValueError(f"`coeffs` is on {coeffs.device} but the directions are on {ref.device}")
+        return coeffs
+
+    def _combine(self, basis: torch.Tensor, coeffs: Optional[torch.Tensor]) -> torch.Tensor:
+        """``(..., K)`` basis values and coefficients -> ``(..., C)``."""
+        c = self._resolve_coeffs(coeffs, basis)
+        if c.dim() == 2:
+            out = torch.nn.functional.linear(basis, c)
+        else:
+            batch = basis.shape[:-1]
+            cb = c.shape[:-2]
+            try:
+                torch.broadcast_shapes(batch, cb)
+            except RuntimeError:
+                raise ValueError(
+                    f"leading shape of `coeffs` {tuple(cb)} does not broadcast with the directions' "
+                    f"leading shape {tuple(batch)}"
+                ) from None
+            out = torch.matmul(c, basis.unsqueeze(-1)).squeeze(-1)
+        if self.nonnegative:
+            # straight-through clamp: value max(f, 0), gradient of f
+            out = out + (out.clamp(min=0.0) - out).detach()
+        return out
+
+    # --------------------------------------------------------------- forward
+    def basis(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        r"""Basis matrix :math:`\mathcal H_k(\omega_i, \omega_o)`, ``(..., K)``.
+
+        The design matrix of a linear least-squares fit: ``forward(wi, wo)``
+        equals ``basis(wi, wo) @ coefficients.T`` (before the optional
+        non-negativity clamp).
+
+        Example:
+            >>> import torch, torch_hsh
+            >>> m = torch_hsh.HelmholtzBRDF(2)
+            >>> m.basis(torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.6, 0.8])).shape
+            torch.Size([10])
+        """
+        self._check_like(wi, "wi")
+        self._check_like(wo, "wo")
+        if self.isotropic:
+            return helmholtz_isotropic(wi, wo, self.order)
+        return helmholtz_anisotropic(wi, wo, self.order)
+
+    def forward(self, wi: torch.Tensor, wo: torch.Tensor, coeffs: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Evaluate the BRDF at local-frame direction pairs.
+
+        Args:
+            wi: ``(..., 3)`` incident directions, local frame (z = normal).
+            wo: ``(..., 3)`` outgoing directions; broadcast with ``wi``.
+            coeffs: optional per-call coefficients ``(C, K)`` or ``(..., C, K)``
+                (leading dims broadcast with the directions'); default: the
+                module's own.
+
+        Returns:
+            ``(..., C)`` BRDF values (0 where a direction is below the horizon).
+        """
+        return self._combine(self.basis(wi, wo), coeffs)
+
+    def forward_world(
+        self,
+        wi: torch.Tensor,
+        wo: torch.Tensor,
+        normal: torch.Tensor,
+        coeffs: Optional[torch.Tensor] = None,
+    ) -> torch.Tensor:
+        """Evaluate an isotropic BRDF from world-space directions and normals.
+
+        Uses :func:`torch_hsh.helmholtz_isotropic_world`, which needs no
+        tangent frame and is differentiable with respect to ``normal`` (e.g.
+        for photometric stereo or inverse rendering).
+
+        Args:
+            wi: ``(..., 3)`` light directions (toward the light), world frame.
+            wo: ``(..., 3)`` view directions (toward the camera), world frame.
+            normal: ``(..., 3)`` surface normals; all three broadcast together.
+            coeffs: optional per-call coefficients as in :meth:`forward`.
+
+        Returns:
+            ``(..., C)``; equals ``forward(to_local(wi, n), to_local(wo, n))``.
+
+        Raises:
+            ValueError: if the module is anisotropic (its value depends on the
+                tangent: rotate the directions with
+                :func:`torch_hsh.frames.to_local` and a tangent, then call
+                :meth:`forward`).
+        """
+        if not self.isotropic:
+            raise ValueError(
+                "forward_world needs an isotropic HelmholtzBRDF (isotropic=True); an anisotropic BRDF "
+                "depends on the tangent: use torch_hsh.frames.to_local(v, normal, tangent) and forward()"
+            )
+        self._check_like(wi, "wi")
+        self._check_like(wo, "wo")
+        self._check_like(normal, "normal")
+        return self._combine(helmholtz_isotropic_world(wi, wo, normal, self.order), coeffs)
+
+    def albedo(self, wo: torch.Tensor, coeffs: Optional[torch.Tensor] = None) -> torch.Tensor:
+        r"""Directional albedo :math:`\rho(\omega_o) = \int_{\Omega} f(\omega_i, \omega_o)\cos\theta_i\, d\omega_i`
+        in closed form.
+
+        Derivation (isotropic basis). Integrating over :math:`\phi_i` kills every
+        ``q > 0`` function (:math:`\int_0^{2\pi}\cos(q\,\Delta\phi)\,d\phi_i = 0`);
+        for ``q = 0``, with :math:`\Theta_n^0 = \sqrt{(2n+1)/(2\pi)}\,\tilde P_n(\cos\theta)`,
+
+        .. math::
+            I_n = \int_\Omega \Theta_n^0(\theta_i)\cos\theta_i\,d\omega_i
+                = 2\pi\sqrt{\tfrac{2n+1}{2\pi}}\int_0^1 \tilde P_n(x)\,x\,dx,
+
+        i.e. :math:`I_0 = \sqrt{2\pi}/2`, :math:`I_1 = \sqrt{6\pi}/6 = \sqrt{\pi/6}`,
+        :math:`I_n = 0` for ``n >= 2``. Hence
+
+        .. math::
+            \rho(\omega_o) = \sum_{p \ge r,\ q = 0} a_{pr}^0\,\frac{1}{\sqrt{2+2\delta_{pr}}}
+            \left[I_p\,\Theta_r^0(\theta_o) + I_r\,\Theta_p^0(\theta_o)\right],
+
+        where only ``r <= 1`` terms survive. The anisotropic basis is the same
+        with :math:`J_{n}^{m} = I_n\delta_{m0}` in place of :math:`I_n` and
+        :math:`H_j(\omega_o)` in place of :math:`\Theta(\theta_o)`. A
+        Lambertian :math:`\rho/\pi` gives back :math:`\rho` for every ``wo``.
+        The non-negativity clamp (if enabled) is not taken into account.
+
+        Args:
+            wo: ``(..., 3)`` outgoing directions, local frame.
+            coeffs: optional per-call coefficients as in :meth:`forward`.
+
+        Returns:
+            ``(..., C)`` albedo (0 for ``wo`` below the horizon).
+
+        Example:
+            >>> import torch, torch_hsh
+            >>> m = torch_hsh.HelmholtzBRDF(3, rho=0.7)
+            >>> m.albedo(torch.tensor([0.6, 0.0, 0.8])).detach()
+            tensor([0.7000])
+        """
+        self._check_like(wo, "wo")
+        c = self._resolve_coeffs(coeffs, wo)
+        h_idx, c_idx, w = _albedo_terms(self.order, self.isotropic)
+        # H_n(wo) for every n <= P can enter (the factor I_r needs r <= 1, not p)
+        n_hsh = 1 + max(h_idx)
+        h_order = int(math.isqrt(n_hsh - 1))
+        H = hsh(wo, h_order)  # (..., (h_order+1)^2)
+        dev = wo.device
+        hi = torch.tensor(h_idx, dtype=torch.long, device=dev)
+        ci = torch.tensor(c_idx, dtype=torch.long, device=dev)
+        wt = torch.tensor(w, dtype=wo.dtype, device=dev)
+        Hs = H.index_select(-1, hi) * wt  # (..., E)
+        Cs = c.index_select(-1, ci)  # (C, E) or (..., C, E)
+        if Cs.dim() == 2:
+            return torch.nn.functional.linear(Hs, Cs)
+        return torch.matmul(Cs, Hs.unsqueeze(-1)).squeeze(-1)
