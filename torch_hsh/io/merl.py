@@ -1,0 +1,588 @@
+r"""MERL BRDF ``.binary`` files: reader, writer, table lookup and tabulation.
+
+Format (Matusik et al. 2003, "A data-driven reflectance model"), little-endian:
+
+* header: three int32 ``(N_th, N_td, N_pd)`` = numbers of bins in ``theta_h``,
+  ``theta_d`` and ``phi_d`` (``(90, 90, 180)`` for the published materials);
+* then ``3 * N`` float64 values (``N = N_th * N_td * N_pd``) in three blocks
+  R, G, B; inside a block the flat index is
+  ``phi_d + N_pd * (theta_d + N_td * theta_h)``;
+* stored values are multiplied by the per-channel scale :data:`MERL_SCALE`
+  ``(1/1500, 1.15/1500, 1.66/1500)`` to give the BRDF; negative values mean
+  "not measured".
+
+Bins (Rusinkiewicz half/difference coordinates, see :func:`half_diff_coords`):
+``theta_h`` bin ``floor(sqrt(theta_h / (pi/2)) * N_th)`` (non-linear: dense
+near the specular peak), ``theta_d`` bin ``floor(theta_d / (pi/2) * N_td)``,
+``phi_d`` bin ``floor(phi_d / pi * N_pd)`` after folding ``phi_d`` into
+``[0, pi)`` (an isotropic reciprocal BRDF is unchanged by ``phi_d -> phi_d + pi``).
+Bin indices are clamped to the valid range. Tables of another size are read
+when the header says so, and the same formulas are used with its bin counts.
+
+Example:
+    >>> import tempfile, os, torch
+    >>> from torch_hsh.brdf import Lambertian
+    >>> from torch_hsh.io.merl import tabulate_merl, write_merl, read_merl
+    >>> brdf = tabulate_merl(Lambertian([0.5, 0.5, 0.5]), shape=(8, 8, 16))
+    >>> path = os.path.join(tempfile.mkdtemp(), "lambert.binary")
+    >>> _ = write_merl(path, brdf)
+    >>> again = read_merl(path)
+    >>> torch.equal(again.raw, brdf.raw)
+    True
+"""
+from __future__ import annotations
+
+import math
+import os
+import pathlib
+import tempfile
+from typing import Callable, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+from torch import nn
+
+from .._checks import broadcast_shapes, check_dirs, check_same
+
+__all__ = [
+    "MERL_SHAPE",
+    "MERL_SCALE",
+    "MERLBRDF",
+    "read_merl",
+    "write_merl",
+    "tabulate_merl",
+    "half_diff_coords",
+    "half_diff_to_dirs",
+    "merl_bin_centers",
+]
+
+#: Bin counts ``(theta_h, theta_d, phi_d)`` of the published MERL tables.
+MERL_SHAPE: Tuple[int, int, int] = (90, 90, 180)
+#: Per-channel factors from stored values to BRDF values (R, G, B).
+MERL_SCALE: Tuple[float, float, float] = (1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0)
+#: Stored value written for entries that are not measured.
+UNMEASURED_RAW = -1.0
+
+_HEADER_BYTES = 12
+_MAX_BINS = 1 << 16  # per axis; larger headers are rejected as corrupt
+_INTERPOLATIONS = ("nearest", "trilinear")
+_UNMEASURED = ("zero", "nan")
+
+PathLike = Union[str, os.PathLike]
+
+
+# ----------------------------------------------------------------------------- coordinates
+
+def _unit(v: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    n2 = (v * v).sum(-1, keepdim=True)
+    ok = n2 > torch.finfo(v.dtype).tiny * 1e6
+    return v * torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2))), ok[..., 0]
+
+
+def _safe_norm2(x: torch.Tensor, y: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """``(sqrt(x^2 + y^2), ok)`` with zero (finite) gradient where the norm vanishes."""
+    r2 = x * x + y * y
+    ok = r2 > torch.finfo(x.dtype).tiny * 1e6
+    return torch.where(ok, r2, torch.ones_like(r2)).sqrt() * ok, ok
+
+
+def half_diff_coords(wi: torch.Tensor, wo: torch.Tensor) -> Tuple[torch.Tensor, ...]:
+    r"""Rusinkiewicz half/difference angles of local direction pairs.
+
+    ``h = normalize(wi + wo)``, ``theta_h = acos(h_z)``, ``phi_h = atan2(h_y, h_x)``;
+    ``d = R_y(-theta_h) R_z(-phi_h) wi``, ``theta_d = acos(d_z)``,
+    ``phi_d = atan2(d_y, d_x)`` in ``(-pi, pi]`` (not folded). Angles are computed
+    with ``atan2`` (accurate near 0); where ``h`` is parallel to the normal,
+    ``phi_h = 0``; where ``wi + wo = 0`` the half vector is taken as the normal.
+    Swapping ``wi`` and ``wo`` keeps ``theta_h, phi_h, theta_d`` and shifts
+    ``phi_d`` by ``pi``.
+
+    Args:
+        wi, wo: ``(..., 3)`` local directions (normalised here), broadcast together.
+
+    Returns:
+        ``(theta_h, phi_h, theta_d, phi_d)``, each of the broadcast leading shape.
+
+    Example:
+        >>> z = torch.tensor([0.0, 0.0, 1.0])
+        >>> [float(a) for a in half_diff_coords(z, z)]
+        [0.0, 0.0, 0.0, 0.0]
+    """
+    check_dirs(wi, "wi")
+    check_dirs(wo, "wo")
+    check_same([("wi", wi), ("wo", wo)])
+    lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
+    ui, _ = _unit(wi.expand(*lead, 3))
+    uo, _ = _unit(wo.expand(*lead, 3))
+    h, okh = _unit(ui + uo)
+    h = torch.where(okh[..., None], h, torch.zeros_like(h) + torch.tensor([0.0, 0.0, 1.0], dtype=h.dtype, device=h.device))
+    hx, hy, hz = h.unbind(-1)
+    rho, okr = _safe_norm2(hx, hy)
+    inv = 1.0 / torch.where(okr, rho, torch.ones_like(rho))
+    cphi = torch.where(okr, hx * inv, torch.ones_like(hx))
+    sphi = torch.where(okr, hy * inv, torch.zeros_like(hy))
+    theta_h = torch.atan2(rho, hz)
+    phi_h = torch.atan2(sphi, cphi)
+    vx, vy, vz = ui.unbind(-1)
+    x1 = vx * cphi + vy * sphi
+    y1 = vy * cphi - vx * sphi
+    dx = x1 * hz - vz * rho
+    dz = x1 * rho + vz * hz
+    dy = y1
+    rd, okd = _safe_norm2(dx, dy)
+    theta_d = torch.atan2(rd, dz)
+    phi_d = torch.atan2(torch.where(okd, dy, torch.zeros_like(dy)), torch.where(okd, dx, torch.ones_like(dx)))
+    return theta_h, phi_h, theta_d, phi_d
+
+
+def half_diff_to_dirs(theta_h, phi_h, theta_d, phi_d) -> Tuple[torch.Tensor, torch.Tensor]:
+    r"""Inverse of :func:`half_diff_coords`: ``(wi, wo)`` unit local directions ``(..., 3)``.
+
+    ``wi = R_z(phi_h) R_y(theta_h) d`` and ``wo = R_z(phi_h) R_y(theta_h) d'`` with
+    ``d = (sin theta_d cos phi_d, sin theta_d sin phi_d, cos theta_d)`` and
+    ``d' = (-d_x, -d_y, d_z)`` (the mirror of ``d`` about the half vector).
+    Directions may fall below the horizon (large ``theta_h`` and ``theta_d``).
+
+    Args:
+        theta_h, phi_h, theta_d, phi_d: float tensors (or numbers), broadcast together.
+
+    Example:
+        >>> wi, wo = half_diff_to_dirs(torch.tensor(0.0), 0.0, torch.tensor(math.pi / 4), 0.0)
+        >>> [round(float(v), 4) + 0.0 for v in wi], [round(float(v), 4) + 0.0 for v in wo]
+        ([0.7071, 0.0, 0.7071], [-0.7071, 0.0, 0.7071])
+    """
+    ref = next((t for t in (theta_h, phi_h, theta_d, phi_d) if isinstance(t, torch.Tensor)), None)
+    if ref is None:
+        raise TypeError("half_diff_to_dirs needs at least one tensor argument")
+    if ref.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"angles must be float32 or float64, got {ref.dtype}")
+    th, ph, td, pd = (torch.as_tensor(t, dtype=ref.dtype, device=ref.device) for t in (theta_h, phi_h, theta_d, phi_d))
+    th, ph, td, pd = torch.broadcast_tensors(th, ph, td, pd)
+    st, ct = td.sin(), td.cos()
+    dx, dy, dz = st * pd.cos(), st * pd.sin(), ct
+    ch, sh, cp, sp = th.cos(), th.sin(), ph.cos(), ph.sin()
+
+    def rot(x, y, z):
+        x1, z1 = ch * x + sh * z, -sh * x + ch * z  # R_y(theta_h)
+        return torch.stack([cp * x1 - sp * y, sp * x1 + cp * y, z1], -1)  # R_z(phi_h)
+
+    return rot(dx, dy, dz), rot(-dx, -dy, dz)
+
+
+def merl_bin_centers(shape: Sequence[int] = MERL_SHAPE, dtype=torch.float64, device=None):
+    """Angles ``(theta_h (N_th,), theta_d (N_td,), phi_d (N_pd,))`` at the bin centres.
+
+    Centres are taken in index space: ``theta_h = ((i + 1/2) / N_th)^2 pi/2``,
+    ``theta_d = (j + 1/2) / N_td * pi/2``, ``phi_d = (k + 1/2) / N_pd * pi``,
+    so each maps back to its own bin.
+
+    Example:
+        >>> th, td, pd = merl_bin_centers((2, 2, 4))
+        >>> [round(float(v), 4) for v in pd]
+        [0.3927, 1.1781, 1.9635, 2.7489]
+    """
+    nh, nd, npd = _check_shape(shape, "shape")
+    kw = dict(dtype=dtype, device=device)
+    th = ((torch.arange(nh, **kw) + 0.5) / nh) ** 2 * (math.pi / 2)
+    td = (torch.arange(nd, **kw) + 0.5) / nd * (math.pi / 2)
+    pd = (torch.arange(npd, **kw) + 0.5) / npd * math.pi
+    return th, td, pd
+
+
+# ----------------------------------------------------------------------------- table object
+
+def _check_shape(shape, name) -> Tuple[int, int, int]:
+    try:
+        dims = tuple(int(s) for s in shape)
+    except (TypeError, ValueError):
+        raise TypeError(f"`{name}` must be three positive integers, got {shape!r}") from None
+    if len(dims) != 3 or any(d <= 0 for d in dims):
+        raise ValueError(f"`{name}` must be three positive integers (theta_h, theta_d, phi_d), got {shape!r}")
+    return dims
+
+
+def _check_scale(scale) -> torch.Tensor:
+    s = torch.as_tensor(scale, dtype=torch.float64).flatten()
+    if s.numel() != 3 or not bool(torch.isfinite(s).all()) or not bool((s > 0).all()):
+        raise ValueError(f"`scale` must be three positive finite numbers (R, G, B), got {scale!r}")
+    return s
+
+
+def _check_option(value, name, allowed):
+    if value not in allowed:
+        raise ValueError(f"`{name}` must be one of {', '.join(repr(a) for a in allowed)}, got {value!r}")
+    return value
+
+
+def _as_table(x, name) -> torch.Tensor:
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(np.ascontiguousarray(x))
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"`{name}` must be a MERLBRDF, a torch.Tensor or a numpy array, got {type(x).__name__}")
+    if x.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"`{name}` must be float32 or float64, got dtype {x.dtype}")
+    if x.dim() != 4 or x.shape[0] != 3 or any(s == 0 for s in x.shape):
+        raise ValueError(f"`{name}` must have shape (3, N_theta_h, N_theta_d, N_phi_d), got {tuple(x.shape)}")
+    return x
+
+
+def _table_to_raw(table: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    t = table.detach().to(torch.float64)
+    if bool(torch.isinf(t).any()):
+        raise ValueError("`table` contains Inf values; use NaN or a negative value for unmeasured entries")
+    raw = t / scale.to(t.device).view(3, 1, 1, 1)
+    return torch.where(torch.isnan(raw) | (raw < 0), torch.full_like(raw, UNMEASURED_RAW), raw)
+
+
+class MERLBRDF(nn.Module):
+    r"""A tabulated isotropic BRDF on the MERL half/difference grid.
+
+    Attributes (buffers):
+        raw: ``(3, N_th, N_td, N_pd)`` float64 values as stored in the file
+            (negative = not measured). Writing keeps them bit-exact.
+        scale: ``(3,)`` per-channel factors (:data:`MERL_SCALE` by default).
+
+    Calling ``brdf(wi, wo)`` with local directions ``(..., 3)`` returns
+    ``(..., 3)`` RGB BRDF values in the dtype of the directions:
+
+    * ``interpolation="nearest"`` (default): the value of the bin that contains
+      the direction pair (exactly the MERL reference lookup);
+      ``"trilinear"``: linear interpolation between bin centres in the index
+      coordinates ``(sqrt(theta_h/(pi/2)) N_th, theta_d/(pi/2) N_td, phi_d/pi N_pd)``,
+      periodic in ``phi_d`` (period ``pi``) and constant beyond the first/last
+      centre in ``theta_h`` and ``theta_d``. Unmeasured corners are left out and
+      the remaining weights renormalised. Trilinear lookup is differentiable
+      with respect to the directions (finite gradients) and the table.
+    * ``unmeasured="zero"`` (default) returns 0 for unmeasured entries,
+      ``"nan"`` returns NaN (to mask them downstream).
+    * Directions below the horizon (``z < 0``) or zero vectors give 0.
+
+    The lookup is reciprocal: swapping ``wi`` and ``wo`` shifts ``phi_d`` by
+    ``pi``, which the fold removes.
+
+    Args:
+        raw: stored values ``(3, N_th, N_td, N_pd)`` (tensor or numpy array).
+        scale: per-channel factors from stored to BRDF values.
+        interpolation, unmeasured: default lookup options (see above).
+
+    Example:
+        >>> raw = torch.full((3, 4, 4, 8), 1500.0, dtype=torch.float64)
+        >>> brdf = MERLBRDF(raw)
+        >>> z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        >>> [round(float(v), 4) for v in brdf(z, z)]
+        [1.0, 1.15, 1.66]
+    """
+
+    def __init__(self, raw, scale=MERL_SCALE, interpolation: str = "nearest", unmeasured: str = "zero") -> None:
+        super().__init__()
+        raw = _as_table(raw, "raw").to(torch.float64)
+        if bool(torch.isnan(raw).any()) or bool(torch.isinf(raw).any()):
+            raise ValueError("`raw` must be finite (negative values mark unmeasured entries), got NaN/Inf")
+        self.register_buffer("raw", raw)
+        self.register_buffer("scale", _check_scale(scale).to(raw.device))
+        self.interpolation = _check_option(interpolation, "interpolation", _INTERPOLATIONS)
+        self.unmeasured = _check_option(unmeasured, "unmeasured", _UNMEASURED)
+
+    @classmethod
+    def from_table(cls, table, scale=MERL_SCALE, **kwargs) -> "MERLBRDF":
+        """Build from BRDF values ``(3, N_th, N_td, N_pd)``; NaN or negative entries become unmeasured.
+
+        The stored values are ``table / scale`` (so ``brdf.table`` equals ``table``
+        up to one rounding).
+
+        Example:
+            >>> b = MERLBRDF.from_table(torch.full((3, 2, 2, 4), 0.25, dtype=torch.float64))
+            >>> float(b.raw[0, 0, 0, 0])
+            375.0
+        """
+        s = _check_scale(scale)
+        return cls(_table_to_raw(_as_table(table, "table"), s), scale=s, **kwargs)
+
+    @property
+    def shape(self) -> Tuple[int, int, int]:
+        """Bin counts ``(N_th, N_td, N_pd)``."""
+        return tuple(self.raw.shape[1:])
+
+    @property
+    def table(self) -> torch.Tensor:
+        """BRDF values ``raw * scale`` ``(3, N_th, N_td, N_pd)`` (unmeasured entries stay negative)."""
+        return self.raw * self.scale.view(3, 1, 1, 1)
+
+    @property
+    def measured(self) -> torch.Tensor:
+        """Boolean mask ``(3, N_th, N_td, N_pd)`` of measured entries (``raw >= 0``)."""
+        return self.raw >= 0
+
+    def extra_repr(self) -> str:
+        frac = float(self.measured.double().mean())
+        return (f"shape={self.shape}, measured={frac:.3f}, interpolation={self.interpolation!r}, "
+                f"unmeasured={self.unmeasured!r}")
+
+    def bin_indices(self, wi: torch.Tensor, wo: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Nearest-bin indices ``(i_theta_h, i_theta_d, i_phi_d)`` (LongTensors) of direction pairs.
+
+        Example:
+            >>> b = MERLBRDF(torch.zeros(3, 90, 90, 180, dtype=torch.float64))
+            >>> z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+            >>> [int(i) for i in b.bin_indices(z, z)]
+            [0, 0, 0]
+        """
+        nh, nd, npd = self.shape
+        th, _, td, pd = half_diff_coords(wi, wo)
+        ih = (torch.sqrt(th.clamp(min=0.0) / (math.pi / 2)) * nh).floor().long().clamp(0, nh - 1)
+        idd = (td.clamp(min=0.0) / (math.pi / 2) * nd).floor().long().clamp(0, nd - 1)
+        ip = (torch.remainder(pd, math.pi) / math.pi * npd).floor().long().clamp(0, npd - 1)
+        return ih, idd, ip
+
+    def _gather(self, ih, idd, ip, dtype):
+        nh, nd, npd = self.shape
+        flat = ip + npd * (idd + nd * ih)
+        raw = self.raw.reshape(3, -1)
+        vals = raw[:, flat.reshape(-1)].reshape(3, *flat.shape)
+        vals = vals.movedim(0, -1)  # (..., 3)
+        return (vals * self.scale).to(dtype), (vals >= 0)
+
+    def lookup(self, wi: torch.Tensor, wo: torch.Tensor, interpolation: Optional[str] = None,
+               unmeasured: Optional[str] = None) -> torch.Tensor:
+        """BRDF values ``(..., 3)`` at local direction pairs; options override the defaults.
+
+        Example:
+            >>> b = MERLBRDF(torch.full((3, 4, 4, 8), 1500.0, dtype=torch.float64))
+            >>> z = torch.tensor([0.0, 0.0, 1.0])
+            >>> b.lookup(z, z, interpolation="trilinear").shape
+            torch.Size([3])
+        """
+        interpolation = _check_option(interpolation or self.interpolation, "interpolation", _INTERPOLATIONS)
+        unmeasured = _check_option(unmeasured or self.unmeasured, "unmeasured", _UNMEASURED)
+        check_dirs(wi, "wi")
+        check_dirs(wo, "wo")
+        check_same([("wi", wi), ("wo", wo)])
+        lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
+        dev, dtype = wi.device, wi.dtype
+        if self.raw.device != dev:
+            raise ValueError(f"the table is on {self.raw.device} but `wi` is on {dev}; use brdf.to(device)")
+        _, oki = _unit(wi.expand(*lead, 3))
+        _, oko = _unit(wo.expand(*lead, 3))
+        above = oki & oko & (wi.expand(*lead, 3)[..., 2] >= 0) & (wo.expand(*lead, 3)[..., 2] >= 0)
+        if interpolation == "nearest":
+            vals, ok = self._gather(*self.bin_indices(wi, wo), dtype)
+        else:
+            vals, ok = self._trilinear(wi, wo, dtype)
+        fill = 0.0 if unmeasured == "zero" else float("nan")
+        vals = torch.where(ok, vals, torch.full_like(vals, fill))
+        return torch.where(above[..., None], vals, torch.zeros_like(vals))
+
+    def _trilinear(self, wi, wo, dtype):
+        nh, nd, npd = self.shape
+        th, _, td, pd = half_diff_coords(wi, wo)
+        tiny = torch.finfo(th.dtype).tiny
+        # sqrt with a finite gradient at theta_h = 0
+        sq = torch.where(th > tiny, th, torch.full_like(th, tiny)).sqrt() * (th > tiny)
+        xs = (
+            (sq / math.sqrt(math.pi / 2) * nh - 0.5, nh, False),
+            (td / (math.pi / 2) * nd - 0.5, nd, False),
+            (torch.remainder(pd, math.pi) / math.pi * npd - 0.5, npd, True),
+        )
+        idx, wts = [], []
+        for x, n, periodic in xs:
+            if periodic:
+                i0 = x.detach().floor()
+                t = x - i0
+                i0 = i0.long()
+                idx.append((torch.remainder(i0, n), torch.remainder(i0 + 1, n)))
+            else:
+                x = x.clamp(0.0, n - 1.0)
+                i0 = x.detach().floor().clamp(max=max(n - 2, 0))
+                t = x - i0
+                i0 = i0.long()
+                idx.append((i0, (i0 + 1).clamp(max=n - 1)))
+            wts.append((1.0 - t, t))
+        num = 0.0
+        den = 0.0
+        for a in (0, 1):
+            for b in (0, 1):
+                for c in (0, 1):
+                    v, ok = self._gather(idx[0][a], idx[1][b], idx[2][c], dtype)
+                    w = (wts[0][a] * wts[1][b] * wts[2][c]).to(dtype)[..., None] * ok
+                    num = num + w * torch.where(ok, v, torch.zeros_like(v))
+                    den = den + w
+        good = den > 0
+        return num / torch.where(good, den, torch.ones_like(den)), good
+
+    def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        """``brdf(wi, wo) -> (..., 3)`` with the default options (see :meth:`lookup`)."""
+        return self.lookup(wi, wo)
+
+
+# ----------------------------------------------------------------------------- files
+
+def _check_path(path, name="path") -> pathlib.Path:
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"`{name}` must be a str or os.PathLike, got {type(path).__name__}")
+    return pathlib.Path(path)
+
+
+def read_merl(path: PathLike, interpolation: str = "nearest", unmeasured: str = "zero") -> MERLBRDF:
+    """Read a MERL ``.binary`` BRDF file.
+
+    Args:
+        path: file path.
+        interpolation, unmeasured: default lookup options of the returned
+            :class:`MERLBRDF`.
+
+    Returns:
+        :class:`MERLBRDF` with ``raw`` of shape ``(3, N_th, N_td, N_pd)`` as given
+        by the header (``(90, 90, 180)`` for the published files).
+
+    Raises:
+        FileNotFoundError: no such file. IsADirectoryError: a directory.
+        ValueError: truncated file, invalid header (non-positive or absurd bin
+        counts) or a size that does not match the header.
+
+    Example:
+        >>> import tempfile, os
+        >>> p = os.path.join(tempfile.mkdtemp(), "x.binary")
+        >>> _ = write_merl(p, torch.full((3, 2, 3, 4), 0.1, dtype=torch.float64))
+        >>> read_merl(p).shape
+        (2, 3, 4)
+    """
+    p = _check_path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"MERL BRDF file not found: {str(p)!r}")
+    if p.is_dir():
+        raise IsADirectoryError(f"MERL BRDF path is a directory, expected a .binary file: {str(p)!r}")
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        if size < _HEADER_BYTES:
+            raise ValueError(f"{str(p)!r} is truncated: {size} bytes, but a MERL file starts with a "
+                             f"{_HEADER_BYTES}-byte header of three int32 bin counts")
+        dims = np.frombuffer(fh.read(_HEADER_BYTES), dtype="<i4")
+        if any(int(d) <= 0 or int(d) > _MAX_BINS for d in dims):
+            raise ValueError(f"{str(p)!r} has an invalid MERL header {tuple(int(d) for d in dims)}: expected three "
+                             f"bin counts in [1, {_MAX_BINS}] such as {MERL_SHAPE}")
+        nh, nd, npd = (int(d) for d in dims)
+        n = nh * nd * npd
+        expected = _HEADER_BYTES + 3 * n * 8
+        if size != expected:
+            what = "truncated" if size < expected else "longer than its header says"
+            raise ValueError(f"{str(p)!r} is {what}: the header {(nh, nd, npd)} needs {expected} bytes "
+                             f"(12 + 3 x {n} float64), the file has {size}")
+        data = np.frombuffer(fh.read(3 * n * 8), dtype="<f8").astype(np.float64)
+    raw = torch.from_numpy(data.reshape(3, nh, nd, npd).copy())
+    if not bool(torch.isfinite(raw).all()):
+        raise ValueError(f"{str(p)!r} contains NaN/Inf values; MERL files mark unmeasured entries with negatives")
+    return MERLBRDF(raw, interpolation=interpolation, unmeasured=unmeasured)
+
+
+def write_merl(path: PathLike, table_or_brdf, overwrite: bool = False, scale=MERL_SCALE) -> pathlib.Path:
+    """Write a MERL ``.binary`` file.
+
+    Args:
+        path: destination path.
+        table_or_brdf: a :class:`MERLBRDF` (its ``raw`` values are written
+            bit-exact), or BRDF values ``(3, N_th, N_td, N_pd)`` as a float tensor
+            or numpy array (stored as ``table / scale``; NaN or negative entries
+            are written as :data:`UNMEASURED_RAW`).
+        overwrite: replace an existing file (default: refuse).
+        scale: per-channel factors used for a plain table (ignored for a MERLBRDF,
+            whose own ``scale`` must equal the MERL convention to be read back
+            correctly by other readers).
+
+    Returns:
+        The path written. The file is written to a temporary name in the same
+        folder and moved into place, so a failure never leaves a partial file.
+
+    Raises:
+        FileExistsError: ``path`` exists and ``overwrite`` is False.
+
+    Example:
+        >>> import tempfile, os
+        >>> p = os.path.join(tempfile.mkdtemp(), "y.binary")
+        >>> os.path.getsize(write_merl(p, torch.zeros(3, 2, 2, 4, dtype=torch.float64)))
+        396
+    """
+    p = _check_path(path)
+    if not isinstance(overwrite, bool):
+        raise TypeError(f"`overwrite` must be a bool, got {type(overwrite).__name__}")
+    if isinstance(table_or_brdf, MERLBRDF):
+        raw = table_or_brdf.raw.detach()
+    else:
+        raw = _table_to_raw(_as_table(table_or_brdf, "table_or_brdf"), _check_scale(scale))
+    if p.exists() and not overwrite:
+        raise FileExistsError(f"{str(p)!r} exists; pass overwrite=True to replace it")
+    if p.is_dir():
+        raise IsADirectoryError(f"{str(p)!r} is a directory")
+    header = np.asarray(raw.shape[1:], dtype="<i4")
+    data = raw.cpu().numpy().astype("<f8", copy=False)
+    folder = p.parent if str(p.parent) else pathlib.Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=".merl-", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(header.tobytes())
+            fh.write(np.ascontiguousarray(data).tobytes())
+        os.replace(tmp, p)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return p
+
+
+def tabulate_merl(model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], shape: Sequence[int] = MERL_SHAPE,
+                  scale=MERL_SCALE, below_horizon: str = "unmeasured", chunk: int = 8) -> MERLBRDF:
+    """Sample a BRDF callable at the bin centres of the MERL grid.
+
+    Every bin ``(i, j, k)`` gets ``model(wi, wo)`` at the direction pair of its
+    centre (:func:`merl_bin_centers`, ``phi_h = 0``: the grid assumes an
+    isotropic BRDF, so an anisotropic model is sampled along ``phi_h = 0`` only).
+    Evaluation is in float64 without gradients.
+
+    Args:
+        model: callable ``(wi (..., 3), wo (..., 3)) -> (..., C)`` with ``C`` 1 or 3
+            (for example a :mod:`torch_hsh.brdf` model or another :class:`MERLBRDF`).
+        shape: bin counts ``(N_th, N_td, N_pd)``.
+        scale: per-channel stored-value factors.
+        below_horizon: bins whose centre puts ``wi`` or ``wo`` below the horizon
+            are stored as unmeasured (``"unmeasured"``, default, like missing MERL
+            samples) or as 0 (``"zero"``).
+        chunk: ``theta_h`` rows evaluated per call (bounds peak memory).
+
+    Returns:
+        :class:`MERLBRDF`.
+
+    Example:
+        >>> from torch_hsh.brdf import Lambertian
+        >>> b = tabulate_merl(Lambertian(0.5), shape=(4, 4, 8))
+        >>> z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        >>> round(float(b(z, z)[0]) * math.pi, 12)
+        0.5
+    """
+    if not callable(model):
+        raise TypeError(f"`model` must be callable (wi, wo) -> (..., C), got {type(model).__name__}")
+    nh, nd, npd = _check_shape(shape, "shape")
+    s = _check_scale(scale)
+    _check_option(below_horizon, "below_horizon", ("unmeasured", "zero"))
+    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+        raise ValueError(f"`chunk` must be a positive integer, got {chunk!r}")
+    dev = None
+    if isinstance(model, nn.Module):
+        bufs = list(model.buffers()) + list(model.parameters())
+        dev = bufs[0].device if bufs else None
+    th, td, pd = merl_bin_centers((nh, nd, npd), dtype=torch.float64, device=dev)
+    raw = torch.empty(3, nh, nd, npd, dtype=torch.float64, device=dev)
+    with torch.no_grad():
+        for start in range(0, nh, chunk):
+            rows = th[start:start + chunk]
+            TH, TD, PD = torch.meshgrid(rows, td, pd, indexing="ij")
+            wi, wo = half_diff_to_dirs(TH, torch.zeros_like(TH), TD, PD)
+            f = model(wi, wo)
+            if not isinstance(f, torch.Tensor) or f.shape[:-1] != TH.shape or f.shape[-1] not in (1, 3):
+                got = tuple(f.shape) if isinstance(f, torch.Tensor) else type(f).__name__
+                raise ValueError(f"`model` must return (..., 1) or (..., 3) values for (..., 3) directions, got {got}")
+            f = f.to(torch.float64).expand(*TH.shape, 3).movedim(-1, 0)
+            block = _table_to_raw(f, s)
+            if below_horizon == "unmeasured":
+                below = (wi[..., 2] < 0) | (wo[..., 2] < 0)
+                block = torch.where(below, torch.full_like(block, UNMEASURED_RAW), block)
+            raw[:, start:start + chunk] = block
+    return MERLBRDF(raw, scale=s)
