@@ -1,0 +1,404 @@
+"""Tests for torch_hsh.io.diligent (DiLiGenT folder layout, 16-bit PNG I/O)."""
+import struct
+import zlib
+
+import numpy as np
+import pytest
+import scipy.io
+import torch
+
+from torch_hsh.io.diligent import (
+    PhotometricDataset,
+    _decode_png_numpy,
+    _png_info,
+    _read_png,
+    _write_png,
+    load_diligent,
+    save_diligent,
+)
+
+L, H, W = 5, 6, 7
+
+
+def _close(a, b, rtol=1e-7, atol=0.0):
+    # numpy comparison: torch.testing.assert_close costs a multi-second torch.distributed import
+    assert a.dtype == b.dtype, (a.dtype, b.dtype)
+    np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=rtol, atol=atol)
+
+
+# --------------------------------------------------------------------------- #
+# fixtures
+# --------------------------------------------------------------------------- #
+def _lights(n, seed=0):
+    g = np.random.default_rng(seed)
+    v = g.normal(size=(n, 3))
+    v[:, 2] = np.abs(v[:, 2]) + 1.0
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _handmade_folder(root, names=("b.png", "a.png", "c.png"), write_intens=True, write_mask=True, write_names=True):
+    """A folder written without save_diligent: explicit 16-bit codes and DiLiGenT-style text."""
+    n = len(names)
+    root.mkdir(parents=True, exist_ok=True)
+    g = np.random.default_rng(1)
+    codes = g.integers(0, 65536, size=(n, H, W, 3), dtype=np.uint16)
+    for name, c in zip(names, codes):
+        _write_png(root / name, c)
+    lights = _lights(n)
+    # DiLiGenT style: scientific notation, several spaces, trailing blanks, a final empty line
+    (root / "light_directions.txt").write_text(
+        "".join("  ".join(f"{x:.8e}" for x in row) + "   \n" for row in lights) + "\n"
+    )
+    intens = 0.5 + g.random((n, 3))
+    if write_intens:
+        (root / "light_intensities.txt").write_text("".join(" ".join(f"{x:.8f}" for x in r) + "\n" for r in intens))
+    if write_names:
+        (root / "filenames.txt").write_text("".join(s + "\n" for s in names))
+    mask = g.random((H, W)) > 0.3
+    if write_mask:
+        _write_png(root / "mask.png", (mask * 255).astype(np.uint8))
+    normals = g.normal(size=(H, W, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    scipy.io.savemat(str(root / "Normal_gt.mat"), {"Normal_gt": normals})
+    return dict(codes=codes, lights=lights, intens=np.round(intens, 8), mask=mask, normals=normals, names=list(names))
+
+
+def _random_scene(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    images = torch.rand(L, H, W, 3, generator=g, dtype=torch.float64) * 3.0
+    lights = torch.as_tensor(_lights(L, seed))
+    intens = 0.5 + torch.rand(L, 3, generator=g, dtype=torch.float64)
+    mask = torch.rand(H, W, generator=g) > 0.4
+    normals = torch.nn.functional.normalize(torch.randn(H, W, 3, generator=g, dtype=torch.float64), dim=-1)
+    return images, lights, intens, mask, normals
+
+
+# --------------------------------------------------------------------------- #
+# PNG codec
+# --------------------------------------------------------------------------- #
+def _paeth(a, b, c):
+    p = a + b - c
+    pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+    if pa <= pb and pa <= pc:
+        return a
+    return b if pb <= pc else c
+
+
+def _encode_all_filters(img):
+    """Independent reference PNG encoder cycling filter types 0..4 row by row (byte loops)."""
+    h, w, ch = img.shape
+    depth = 16 if img.dtype == np.uint16 else 8
+    bpp = ch * depth // 8
+    rows = (img.astype(">u2") if depth == 16 else img).view(np.uint8).reshape(h, w * bpp).astype(int)
+    out = bytearray()
+    prev = [0] * (w * bpp)
+    for r in range(h):
+        ftype = r % 5
+        cur = rows[r].tolist()
+        out.append(ftype)
+        for i, x in enumerate(cur):
+            a = cur[i - bpp] if i >= bpp else 0
+            b = prev[i]
+            c = prev[i - bpp] if i >= bpp else 0
+            pred = [0, a, b, (a + b) // 2, _paeth(a, b, c)][ftype]
+            out.append((x - pred) & 0xFF)
+        prev = cur
+    ctype = {1: 0, 3: 2, 4: 6}[ch]
+
+    def chunk(t, body):
+        return struct.pack(">I", len(body)) + t + body + struct.pack(">I", zlib.crc32(t + body) & 0xFFFFFFFF)
+
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, depth, ctype, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(bytes(out)))
+        + chunk(b"IEND", b"")
+    )
+
+
+@pytest.mark.parametrize("dtype,ch", [(np.uint16, 3), (np.uint8, 3), (np.uint16, 1), (np.uint8, 4)])
+def test_numpy_png_decoder_all_filter_types(tmp_path, dtype, ch):
+    g = np.random.default_rng(0)
+    img = g.integers(0, np.iinfo(dtype).max + 1, size=(11, 6, ch)).astype(dtype)
+    f = tmp_path / "f.png"
+    f.write_bytes(_encode_all_filters(img))
+    dec = _decode_png_numpy(f)
+    assert dec.dtype == dtype
+    np.testing.assert_array_equal(dec, img[..., 0] if ch == 1 else img)
+    # the production reader (kornia_rs for 16 bit, imageio for 8 bit) agrees
+    np.testing.assert_array_equal(_read_png(f), img[..., 0] if ch == 1 else img)
+
+
+def test_png_writer_16bit_rgb_roundtrip(tmp_path):
+    img = np.random.default_rng(2).integers(0, 65536, size=(9, 13, 3)).astype(np.uint16)
+    f = tmp_path / "x.png"
+    _write_png(f, img)
+    assert _png_info(f)[:4] == (13, 9, 16, 2)  # width, height, 16 bit, RGB
+    np.testing.assert_array_equal(_read_png(f), img)
+    np.testing.assert_array_equal(_decode_png_numpy(f), img)
+
+
+def test_png_reader_rejects_non_png(tmp_path):
+    f = tmp_path / "x.png"
+    f.write_bytes(b"not a png at all, definitely not a png")
+    with pytest.raises(ValueError, match="not a PNG"):
+        _read_png(f)
+
+
+# --------------------------------------------------------------------------- #
+# load_diligent
+# --------------------------------------------------------------------------- #
+def test_load_handmade_folder(tmp_path):
+    ref = _handmade_folder(tmp_path / "obj")
+    d = load_diligent(tmp_path / "obj", dtype=torch.float64)
+    assert isinstance(d, PhotometricDataset)
+    assert d.names == ref["names"]  # order of filenames.txt, not sorted
+    assert d.images.shape == (3, H, W, 3) and d.images.dtype == torch.float64
+    expected = ref["codes"] / 65535.0 / ref["intens"][:, None, None, :]
+    np.testing.assert_allclose(d.images.numpy(), expected, rtol=1e-12)
+    np.testing.assert_allclose(d.lights.numpy(), ref["lights"], atol=1e-8)
+    np.testing.assert_allclose(torch.linalg.vector_norm(d.lights, dim=-1).numpy(), 1.0, atol=1e-15)
+    np.testing.assert_allclose(d.intensities.numpy(), ref["intens"])
+    np.testing.assert_array_equal(d.mask.numpy(), ref["mask"])
+    assert d.mask.dtype == torch.bool
+    np.testing.assert_array_equal(d.normals_gt.numpy(), ref["normals"])
+    assert d.num_images == 3 and d.shape == (H, W)
+    raw = load_diligent(tmp_path / "obj", normalize_intensities=False)
+    assert raw.images.dtype == torch.float32
+    np.testing.assert_allclose(raw.images.numpy(), ref["codes"] / 65535.0, rtol=1e-6)
+
+
+def test_load_drop_first_and_max_images(tmp_path):
+    ref = _handmade_folder(tmp_path / "o", names=("1.png", "2.png", "3.png"))
+    d = load_diligent(tmp_path / "o", drop_first=1, max_images=1, dtype=torch.float64)
+    assert d.names == ["2.png"]
+    np.testing.assert_allclose(d.lights.numpy(), ref["lights"][1:2], atol=1e-8)
+    np.testing.assert_allclose(d.images[0].numpy(), ref["codes"][1] / 65535.0 / ref["intens"][1], rtol=1e-12)
+    with pytest.raises(ValueError, match="no images left"):
+        load_diligent(tmp_path / "o", drop_first=3)
+    with pytest.raises(ValueError, match="drop_first"):
+        load_diligent(tmp_path / "o", drop_first=-1)
+    with pytest.raises(TypeError, match="max_images"):
+        load_diligent(tmp_path / "o", max_images=1.5)
+
+
+def test_load_without_filenames_sorts_pngs_and_skips_mask(tmp_path):
+    _handmade_folder(tmp_path / "o", names=("002.png", "001.png", "003.png"), write_names=False)
+    _write_png(tmp_path / "o" / "normal.png", np.zeros((H, W, 3), np.uint8))
+    d = load_diligent(tmp_path / "o")
+    assert d.names == ["001.png", "002.png", "003.png"]
+
+
+def test_load_missing_optional_files_warns(tmp_path):
+    _handmade_folder(tmp_path / "o", write_intens=False, write_mask=False)
+    with pytest.warns(UserWarning) as rec:
+        d = load_diligent(tmp_path / "o")
+    msgs = " ".join(str(r.message) for r in rec)
+    assert "mask.png" in msgs and "light_intensities" in msgs
+    assert bool(d.mask.all())
+    assert torch.equal(d.intensities, torch.ones(3, 3))
+    (tmp_path / "o" / "Normal_gt.mat").unlink()
+    with pytest.warns(UserWarning):
+        assert load_diligent(tmp_path / "o").normals_gt is None
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        load_diligent(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="light_directions.txt"):
+        load_diligent(tmp_path / "empty")
+    with pytest.raises(TypeError, match="dtype"):
+        load_diligent(tmp_path / "empty", dtype=torch.int32)
+
+    def fresh(name, **kw):
+        _handmade_folder(tmp_path / name, **kw)
+        return tmp_path / name
+
+    p = fresh("count")
+    with open(p / "light_directions.txt", "a") as f:
+        f.write("0 0 1\n")
+    with open(p / "light_intensities.txt", "a") as f:
+        f.write("1 1 1\n")
+    with pytest.raises(ValueError, match="3 image names .* 4 light directions"):
+        load_diligent(p)
+
+    p = fresh("intens")
+    (p / "light_intensities.txt").write_text("1 1 1\n1 1 1\n")
+    with pytest.raises(ValueError, match="light_intensities.txt has 2 rows"):
+        load_diligent(p)
+
+    p = fresh("intens0")
+    (p / "light_intensities.txt").write_text("1 1 1\n1 0 1\n1 1 1\n")
+    with pytest.raises(ValueError, match="row 2.*> 0"):
+        load_diligent(p)
+
+    p = fresh("nonunit")
+    (p / "light_directions.txt").write_text("0 0 1\n0 0 2\n0 0.6 0.8\n")
+    with pytest.raises(ValueError, match="row 2 has length 2"):
+        load_diligent(p)
+
+    p = fresh("malformed")
+    (p / "light_directions.txt").write_text("0 0 1\n0 zero 1\n0 0.6 0.8\n")
+    with pytest.raises(ValueError, match="line 2: malformed"):
+        load_diligent(p)
+
+    p = fresh("twocols")
+    (p / "light_directions.txt").write_text("0 0 1\n0 1\n0 0.6 0.8\n")
+    with pytest.raises(ValueError, match="line 2: expected 3 numbers"):
+        load_diligent(p)
+
+    p = fresh("size")
+    _write_png(p / "a.png", np.zeros((H + 1, W, 3), np.uint16))
+    with pytest.raises(ValueError, match="differs from the first image"):
+        load_diligent(p)
+
+    p = fresh("gray")
+    _write_png(p / "b.png", np.zeros((H, W), np.uint16))
+    with pytest.raises(ValueError, match="expected an RGB image"):
+        load_diligent(p)
+
+    p = fresh("missingimg")
+    (p / "c.png").unlink()
+    with pytest.raises(FileNotFoundError, match="'c.png'"):
+        load_diligent(p)
+
+    p = fresh("mask")
+    _write_png(p / "mask.png", np.zeros((H, W + 2), np.uint8))
+    with pytest.raises(ValueError, match="mask size"):
+        load_diligent(p)
+
+    p = fresh("normals")
+    scipy.io.savemat(str(p / "Normal_gt.mat"), {"Normal_gt": np.zeros((H, W))})
+    with pytest.raises(ValueError, match="Normal_gt has shape"):
+        load_diligent(p)
+    scipy.io.savemat(str(p / "Normal_gt.mat"), {"normals": np.zeros((H, W, 3))})
+    with pytest.raises(ValueError, match="no variable 'Normal_gt'"):
+        load_diligent(p)
+
+    p = fresh("mixed")
+    _write_png(p / "a.png", np.zeros((H, W, 3), np.uint8))
+    with pytest.raises(ValueError, match="bit depth 8 differs"):
+        load_diligent(p)
+
+
+# --------------------------------------------------------------------------- #
+# save_diligent
+# --------------------------------------------------------------------------- #
+def test_save_load_roundtrip(tmp_path):
+    images, lights, intens, mask, normals = _random_scene()
+    out = save_diligent(tmp_path / "obj", images, lights, intens, mask, normals)
+    assert sorted(p.name for p in out.iterdir()) == [
+        "001.png", "002.png", "003.png", "004.png", "005.png", "Normal_gt.mat",
+        "filenames.txt", "light_directions.txt", "light_intensities.txt", "mask.png",
+    ]  # fmt: skip
+    assert _png_info(out / "001.png")[2:4] == (16, 2)  # 16-bit RGB on disk
+    d = load_diligent(out, dtype=torch.float64)
+    scale = 1.0 / float((images * intens[:, None, None, :]).max())
+    # stored intensities carry the scale: load gives the radiometrically consistent images back
+    _close(d.intensities, intens * scale, rtol=1e-15, atol=0)
+    bound = 0.5 / 65535 / (intens * scale)[:, None, None, :] * (1 + 1e-9)
+    assert bool(((d.images - images).abs() <= bound).all())
+    assert float((d.images - images).abs().max()) > 0  # quantisation really happened
+    _close(d.lights, lights, rtol=0, atol=1e-15)
+    assert torch.equal(d.mask, mask)
+    assert torch.equal(d.normals_gt, normals)
+    # float32 load: lights identical to the float32 cast of the originals (up to 1 ulp of renormalisation)
+    d32 = load_diligent(out)
+    _close(d32.lights, lights.float(), rtol=0, atol=1.2e-7)
+    # the brightest recorded value maps to the largest code
+    assert int(_read_png(out / f"{int((images * intens[:, None, None]).flatten(1).amax(1).argmax()) + 1:03d}.png").max()) == 65535
+
+
+def test_save_explicit_scale_and_codes(tmp_path):
+    images, lights, intens, _, _ = _random_scene(1)
+    out = save_diligent(tmp_path / "o", images, lights, intens, scale=0.1)
+    codes = _read_png(out / "002.png")
+    expected = np.rint(np.clip((images[1] * intens[1]).numpy() * 0.1, 0, 1) * 65535)
+    np.testing.assert_array_equal(codes, expected)
+    d = load_diligent(out, dtype=torch.float64)
+    _close(d.intensities, intens * 0.1)
+    assert torch.equal(d.mask, torch.ones(H, W, dtype=torch.bool))  # default mask: all valid
+    assert d.normals_gt is None
+
+
+def test_save_clips_with_warning(tmp_path):
+    images, lights, _, _, _ = _random_scene(2)
+    images[0, 0, 0] = -0.5
+    with pytest.warns(UserWarning, match="exceed"):
+        with pytest.warns(UserWarning, match="negative"):
+            save_diligent(tmp_path / "o", images, lights, scale=1.0)
+    d = load_diligent(tmp_path / "o")
+    assert float(d.images.max()) == 1.0 and float(d.images.min()) == 0.0
+
+
+def test_save_8bit(tmp_path):
+    images, lights, intens, _, _ = _random_scene(3)
+    save_diligent(tmp_path / "o", images, lights, intens, bit_depth=8)
+    assert _png_info(tmp_path / "o" / "001.png")[2] == 8
+    with pytest.warns(UserWarning, match="8-bit"):
+        d = load_diligent(tmp_path / "o", dtype=torch.float64)
+    bound = 0.5 / 255 / d.intensities[:, None, None, :] * (1 + 1e-9)
+    assert bool(((d.images - images).abs() <= bound).all())
+
+
+def test_save_refuses_non_empty_folder(tmp_path):
+    images, lights, _, _, _ = _random_scene()
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / "keep.txt").write_text("x")
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        save_diligent(tmp_path / "o", images, lights)
+    save_diligent(tmp_path / "o", images, lights, overwrite=True)
+    assert (tmp_path / "o" / "keep.txt").exists()
+    _close(load_diligent(tmp_path / "o", dtype=torch.float64).lights, lights, rtol=0, atol=1e-15)
+    # an empty existing folder is fine without overwrite
+    (tmp_path / "e").mkdir()
+    save_diligent(tmp_path / "e", images, lights)
+
+
+def test_save_custom_names(tmp_path):
+    images, lights, _, _, _ = _random_scene()
+    names = [f"img_{i}.png" for i in range(L)][::-1]
+    save_diligent(tmp_path / "o", images, lights, names=names)
+    assert load_diligent(tmp_path / "o").names == names
+    with pytest.raises(ValueError, match="distinct"):
+        save_diligent(tmp_path / "p", images, lights, names=["a.png"] * L)
+    with pytest.raises(ValueError, match="mask"):
+        save_diligent(tmp_path / "p", images, lights, names=["mask.png"] + names[1:])
+
+
+def test_save_argument_errors(tmp_path):
+    images, lights, intens, mask, normals = _random_scene()
+    p = tmp_path / "o"
+    with pytest.raises(ValueError, match=r"images.*\(L, H, W, 3\)"):
+        save_diligent(p, images[..., :2], lights)
+    with pytest.raises(ValueError, match="lights"):
+        save_diligent(p, images, lights[:2])
+    with pytest.raises(ValueError, match="zero vector"):
+        save_diligent(p, images, torch.zeros(L, 3))
+    with pytest.raises(ValueError, match="intensities"):
+        save_diligent(p, images, lights, -intens)
+    with pytest.raises(ValueError, match="mask"):
+        save_diligent(p, images, lights, mask=mask[:2])
+    with pytest.raises(ValueError, match="normals_gt"):
+        save_diligent(p, images, lights, normals_gt=normals[..., :2])
+    with pytest.raises(ValueError, match="bit_depth"):
+        save_diligent(p, images, lights, bit_depth=12)
+    with pytest.raises(ValueError, match="scale"):
+        save_diligent(p, images, lights, scale=-1.0)
+    bad = images.clone()
+    bad[0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        save_diligent(p, bad, lights)
+    with pytest.raises(TypeError, match="images"):
+        save_diligent(p, images.tolist(), lights)
+    assert not p.exists()  # nothing written on argument errors
+
+
+def test_dataset_to():
+    d = PhotometricDataset(
+        images=torch.zeros(1, 2, 2, 3), lights=torch.tensor([[0.0, 0.0, 1.0]]), intensities=torch.ones(1, 3),
+        mask=torch.ones(2, 2, dtype=torch.bool), normals_gt=None, names=["a.png"], path=None,
+    )  # fmt: skip
+    e = d.to(dtype=torch.float64)
+    assert e.images.dtype == torch.float64 and e.mask.dtype == torch.bool and e.normals_gt is None

@@ -1,0 +1,28 @@
+"""Readers and writers for third-party data formats.
+
+Each format lives in its own submodule, imported below in its own block
+(append new formats at the end of this file)::
+
+    torch_hsh.io.merl      MERL BRDF ``.binary`` tables (read_merl, write_merl, MERLBRDF, tabulate_merl)
+    torch_hsh.io.diligent  DiLiGenT-layout photometric-stereo folders (load_diligent, save_diligent)
+    torch_hsh.io.exr       OpenEXR images, image stacks, normal / coefficient maps, environment maps
+
+Example:
+    >>> from torch_hsh.io import read_merl, write_merl  # doctest: +SKIP
+"""
+__all__ = []
+
+from . import merl  # noqa: E402,F401
+from .merl import MERL_SCALE, MERL_SHAPE, MERLBRDF, read_merl, tabulate_merl, write_merl  # noqa: E402,F401
+
+__all__ += ["merl", "MERL_SCALE", "MERL_SHAPE", "MERLBRDF", "read_merl", "tabulate_merl", "write_merl"]
+
+from . import diligent  # noqa: E402,F401
+from .diligent import *  # noqa: E402,F401,F403
+
+__all__ += ["diligent"] + list(diligent.__all__)
+
+from . import exr  # noqa: E402,F401
+from .exr import *  # noqa: E402,F401,F403
+
+__all__ += ["exr"] + list(exr.__all__)

@@ -1,0 +1,625 @@
+r"""Photometric-stereo image stacks in the DiLiGenT folder layout.
+
+A DiLiGenT object folder holds::
+
+    001.png ... NNN.png      one 16-bit RGB PNG per light (linear radiance)
+    filenames.txt            image names, one a line, in light order (optional here)
+    light_directions.txt     N x 3 unit light directions, whitespace separated
+    light_intensities.txt    N x 3 RGB light intensities (optional here)
+    mask.png                 foreground mask, > 0 inside (optional here)
+    Normal_gt.mat            MATLAB file, key ``Normal_gt``, (H, W, 3) normals (optional)
+
+Frame (the DiLiGenT frame, used everywhere in :mod:`torch_hsh` for images):
+``x`` to the right, ``y`` up, ``z`` toward the camera; the camera looks along
+``-z`` (orthographic). Image row 0 is the **top** of the picture, so the pixel
+at ``(row, col)`` sits at ``x = col``, ``y = -row`` (times the pixel size).
+Light directions point from the surface toward the light; normals point out
+of the surface (``n_z > 0`` where visible).
+
+Radiometry: the PNG values are read as linear numbers in ``[0, 1]``
+(16-bit value / 65535); with ``normalize_intensities=True`` image ``i`` colour
+channel ``c`` is divided by ``light_intensities[i, c]``, which gives images as
+if every light had unit intensity (the usual DiLiGenT preprocessing).
+
+Image decoding pitfalls (why this module does not use OpenCV, Pillow or plain
+``imageio``/``skimage.io``):
+
+* ``cv2.imread`` returns **BGR** channel order (and 8 bits unless
+  ``IMREAD_UNCHANGED`` is passed); dividing BGR pixels by RGB intensities
+  silently swaps the red and blue calibration.
+* Pillow — and therefore ``skimage.io.imread`` and ``imageio.v3.imread``,
+  which use it for PNG — **silently truncates 16-bit RGB PNGs to 8 bits**
+  (checked with Pillow 13 / scikit-image 0.26 / imageio 2.38), and cannot write
+  16-bit RGB PNGs at all.
+
+16-bit PNGs are therefore decoded with ``kornia_rs`` (a dependency of kornia),
+falling back to a small pure-NumPy PNG decoder in this module if ``kornia_rs``
+is unavailable or fails; PNGs are written by a pure-NumPy encoder and read
+back to verify. 8-bit PNGs are decoded with ``imageio`` (Pillow), which is
+correct for them. Channel order is always RGB.
+
+8-bit photographs are accepted with a :class:`UserWarning` (they are divided
+by 255 and **not** linearised: DiLiGenT-style data is linear, and an 8-bit
+file is most likely a preview or a different benchmark).
+"""
+from __future__ import annotations
+
+import operator
+import struct
+import warnings
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Optional, Sequence
+
+import numpy as np
+import torch
+
+__all__ = ["PhotometricDataset", "load_diligent", "save_diligent"]
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: Tolerance on | |l| - 1 | for light directions read from a file.
+UNIT_TOLERANCE = 1e-3
+_FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+# --------------------------------------------------------------------------- #
+# PNG helpers
+# --------------------------------------------------------------------------- #
+def _png_info(path: Path):
+    """(width, height, bit_depth, color_type, interlace) from the IHDR chunk."""
+    with open(path, "rb") as f:
+        head = f.read(33)
+    if len(head) < 33 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise ValueError(f"{path} is not a PNG file (bad signature or header)")
+    width, height, bit_depth, color_type, _comp, _filt, interlace = struct.unpack(">IIBBBBB", head[16:29])
+    return width, height, bit_depth, color_type, interlace
+
+
+_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # PNG colour type -> samples per pixel (palette handled by Pillow)
+
+
+def _decode_png_numpy(path: Path) -> np.ndarray:
+    """Pure-NumPy PNG decoder for non-interlaced 8/16-bit grey/RGB(A) images.
+
+    Slow on rows using the Paeth / Average filters (a Python loop over the
+    pixels of such rows), so it is only the fallback for ``kornia_rs``.
+    Returns ``(H, W)`` or ``(H, W, C)`` uint8 / uint16 (native byte order).
+    """
+    data = Path(path).read_bytes()
+    if data[:8] != _PNG_SIGNATURE:
+        raise ValueError(f"{path} is not a PNG file (bad signature)")
+    pos, idat, ihdr = 8, [], None
+    while pos + 8 <= len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        ctype = data[pos + 4 : pos + 8]
+        body = data[pos + 8 : pos + 8 + length]
+        if ctype == b"IHDR":
+            ihdr = struct.unpack(">IIBBBBB", body)
+        elif ctype == b"IDAT":
+            idat.append(body)
+        elif ctype == b"IEND":
+            break
+        pos += 12 + length
+    if ihdr is None:
+        raise ValueError(f"{path}: PNG without IHDR chunk")
+    width, height, depth, ctype, _c, _f, interlace = ihdr
+    if interlace or depth not in (8, 16) or ctype not in _CHANNELS:
+        raise ValueError(
+            f"{path}: unsupported PNG variant for the NumPy decoder "
+            f"(bit depth {depth}, colour type {ctype}, interlace {interlace})"
+        )
+    nch = _CHANNELS[ctype]
+    bpp = nch * depth // 8
+    stride = width * bpp
+    raw = np.frombuffer(zlib.decompress(b"".join(idat)), dtype=np.uint8)
+    if raw.size != height * (stride + 1):
+        raise ValueError(f"{path}: corrupt PNG (decompressed {raw.size} bytes, expected {height * (stride + 1)})")
+    raw = raw.reshape(height, stride + 1)
+    out = np.zeros((height, stride), dtype=np.uint8)
+    prev = np.zeros(stride, dtype=np.int32)
+    for r in range(height):
+        ftype = int(raw[r, 0])
+        line = raw[r, 1:].astype(np.int32)
+        if ftype == 0:
+            cur = line
+        elif ftype == 1:  # Sub: cumulative sum along each byte lane of the pixel
+            cur = np.cumsum(line.reshape(width, bpp), axis=0).reshape(-1) & 0xFF
+        elif ftype == 2:  # Up
+            cur = (line + prev) & 0xFF
+        elif ftype in (3, 4):  # Average / Paeth: sequential along the row
+            cur = np.zeros(stride, dtype=np.int32)
+            left = np.zeros(bpp, dtype=np.int32)
+            upleft = np.zeros(bpp, dtype=np.int32)
+            for x in range(width):
+                s = slice(x * bpp, (x + 1) * bpp)
+                up = prev[s]
+                if ftype == 3:
+                    pred = (left + up) >> 1
+                else:
+                    p = left + up - upleft
+                    pa, pb, pc = np.abs(p - left), np.abs(p - up), np.abs(p - upleft)
+                    pred = np.where((pa <= pb) & (pa <= pc), left, np.where(pb <= pc, up, upleft))
+                cur[s] = (line[s] + pred) & 0xFF
+                left, upleft = cur[s], up
+        else:
+            raise ValueError(f"{path}: corrupt PNG (filter type {ftype} in row {r})")
+        out[r] = cur
+        prev = cur
+    if depth == 16:
+        img = out.view(">u2").astype(np.uint16)
+    else:
+        img = out
+    img = img.reshape(height, width, nch)
+    return img[..., 0] if nch == 1 else img
+
+
+def _read_png(path: Path) -> np.ndarray:
+    """Decode a PNG keeping its bit depth: (H, W) or (H, W, C) uint8/uint16, RGB order."""
+    width, height, depth, ctype, _interlace = _png_info(path)
+    if depth == 16:
+        img = None
+        try:
+            import kornia_rs
+
+            img = np.asarray(kornia_rs.io.read_image(str(path)))
+        except Exception:  # kornia_rs missing, too old, or unable to decode: use our decoder
+            img = None
+        if img is None or img.dtype != np.uint16 or img.shape[:2] != (height, width):
+            img = _decode_png_numpy(path)
+        if img.ndim == 3 and img.shape[2] == 1:
+            img = img[..., 0]
+        return img
+    import imageio.v3 as iio
+
+    img = np.asarray(iio.imread(path))
+    if img.shape[:2] != (height, width):
+        raise ValueError(f"{path}: decoded shape {img.shape} does not match the PNG header {height}x{width}")
+    return img
+
+
+def _png_chunk(ctype: bytes, body: bytes) -> bytes:
+    crc = zlib.crc32(ctype + body) & 0xFFFFFFFF
+    return struct.pack(">I", len(body)) + ctype + body + struct.pack(">I", crc)
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    """Write a (H, W) / (H, W, 1|3|4) uint8 or uint16 array as a PNG (Sub filter, zlib)."""
+    if img.dtype not in (np.uint8, np.uint16):
+        raise TypeError(f"PNG data must be uint8 or uint16, got {img.dtype}")
+    if img.ndim == 2:
+        img = img[..., None]
+    height, width, nch = img.shape
+    ctype = {1: 0, 2: 4, 3: 2, 4: 6}[nch]
+    depth = 16 if img.dtype == np.uint16 else 8
+    bpp = nch * depth // 8
+    rows = np.ascontiguousarray(img.astype(">u2") if depth == 16 else img).view(np.uint8).reshape(height, width * bpp)
+    filt = rows.astype(np.int16)
+    filt[:, bpp:] -= rows[:, :-bpp]
+    lines = np.empty((height, width * bpp + 1), dtype=np.uint8)
+    lines[:, 0] = 1  # Sub filter
+    lines[:, 1:] = (filt & 0xFF).astype(np.uint8)
+    ihdr = struct.pack(">IIBBBBB", width, height, depth, ctype, 0, 0, 0)
+    payload = _PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr)
+    payload += _png_chunk(b"IDAT", zlib.compress(lines.tobytes(), 6)) + _png_chunk(b"IEND", b"")
+    Path(path).write_bytes(payload)
+
+
+# --------------------------------------------------------------------------- #
+# text helpers
+# --------------------------------------------------------------------------- #
+def _read_rows(path: Path, what: str) -> np.ndarray:
+    """Parse an N x 3 whitespace (or comma) separated text file of floats."""
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 3:
+            raise ValueError(f"{path} line {lineno}: expected 3 numbers for {what}, got {len(parts)}: {line!r}")
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError:
+            raise ValueError(f"{path} line {lineno}: malformed {what} row {line!r} (not numbers)") from None
+        if not all(np.isfinite(vals)):
+            raise ValueError(f"{path} line {lineno}: non-finite {what} row {line!r}")
+        rows.append(vals)
+    if not rows:
+        raise ValueError(f"{path}: no {what} rows found")
+    return np.asarray(rows, dtype=np.float64)
+
+
+def _is_aux_picture(name: str) -> bool:
+    stem = Path(name).stem.lower()
+    return stem.startswith("mask") or stem.startswith("normal")
+
+
+# --------------------------------------------------------------------------- #
+# public API
+# --------------------------------------------------------------------------- #
+@dataclass
+class PhotometricDataset:
+    """One photometric-stereo object (see :func:`load_diligent`).
+
+    Attributes:
+        images: ``(L, H, W, 3)`` linear RGB images (divided by the light
+            intensities when loaded with ``normalize_intensities=True``).
+        lights: ``(L, 3)`` unit light directions, DiLiGenT frame
+            (x right, y up, z toward the camera).
+        intensities: ``(L, 3)`` RGB light intensities as stored in the folder.
+        mask: ``(H, W)`` bool foreground mask.
+        normals_gt: ``(H, W, 3)`` ground-truth normals (same frame) or ``None``.
+        names: the ``L`` image file names, in light order.
+        path: the folder the data came from.
+    """
+
+    images: torch.Tensor
+    lights: torch.Tensor
+    intensities: torch.Tensor
+    mask: torch.Tensor
+    normals_gt: Optional[torch.Tensor]
+    names: List[str]
+    path: Path
+
+    @property
+    def num_images(self) -> int:
+        """Number of images / lights ``L``."""
+        return int(self.images.shape[0])
+
+    @property
+    def shape(self):
+        """``(H, W)`` of the images."""
+        return tuple(self.images.shape[1:3])
+
+    def to(self, device=None, dtype=None) -> "PhotometricDataset":
+        """Copy with floating tensors moved / cast (the mask stays bool)."""
+
+        def mv(t):
+            return None if t is None else t.to(device=device, dtype=dtype)
+
+        return PhotometricDataset(
+            images=mv(self.images),
+            lights=mv(self.lights),
+            intensities=mv(self.intensities),
+            mask=self.mask.to(device=device),
+            normals_gt=mv(self.normals_gt),
+            names=list(self.names),
+            path=self.path,
+        )
+
+
+def _check_count(value, name: str, allow_none: bool = False) -> Optional[int]:
+    if value is None and allow_none:
+        return None
+    if isinstance(value, bool):
+        raise TypeError(f"`{name}` must be a non-negative integer, got {value!r}")
+    try:
+        value = operator.index(value)
+    except TypeError:
+        raise TypeError(f"`{name}` must be a non-negative integer, got {value!r} ({type(value).__name__})") from None
+    if value < 0:
+        raise ValueError(f"`{name}` must be >= 0, got {value}")
+    return value
+
+
+def load_diligent(
+    path,
+    dtype: torch.dtype = torch.float32,
+    device=None,
+    drop_first: int = 0,
+    normalize_intensities: bool = True,
+    max_images: Optional[int] = None,
+) -> PhotometricDataset:
+    r"""Load a photometric-stereo folder in the DiLiGenT layout.
+
+    Args:
+        path: folder with the images, ``light_directions.txt`` and optionally
+            ``filenames.txt``, ``light_intensities.txt``, ``mask.png``,
+            ``Normal_gt.mat`` (see the module docstring).
+        dtype: ``torch.float32`` or ``torch.float64`` for the float tensors.
+        device: target device (default CPU).
+        drop_first: skip the first ``drop_first`` images (e.g. 20 for the
+            corrupted first images of DiLiGenT ``bearPNG``).
+        normalize_intensities: divide image ``i`` channel ``c`` by
+            ``intensities[i, c]``.
+        max_images: keep at most this many images (after ``drop_first``).
+
+    Returns:
+        :class:`PhotometricDataset` with ``images`` ``(L, H, W, 3)``,
+        ``lights`` ``(L, 3)`` (re-normalised to unit length), ``intensities``
+        ``(L, 3)``, ``mask`` ``(H, W)`` bool, ``normals_gt`` ``(H, W, 3)`` or
+        ``None``, ``names`` and ``path``.
+
+    Image names come from ``filenames.txt`` if present, else all ``*.png``
+    files sorted by name, excluding ``mask*`` and ``normal*`` pictures.
+    Missing ``light_intensities.txt`` means unit intensities and missing
+    ``mask.png`` means every pixel is valid (both with a warning). 8-bit
+    images are accepted with a warning (divided by 255, not linearised).
+
+    Raises:
+        FileNotFoundError: missing folder, ``light_directions.txt`` or image.
+        ValueError: malformed / non-unit direction rows, count mismatches
+            between images, directions, intensities and names, images of
+            different sizes or not RGB, mask or normals of the wrong size.
+
+    Example:
+        >>> data = load_diligent("../shared/data/bunny_specular")  # doctest: +SKIP
+        >>> data.images.shape, data.lights.shape, int(data.mask.sum())  # doctest: +SKIP
+        (torch.Size([50, 256, 256, 3]), torch.Size([50, 3]), 20317)
+    """
+    if dtype not in _FLOAT_DTYPES:
+        raise TypeError(f"`dtype` must be torch.float32 or torch.float64, got {dtype}")
+    drop_first = _check_count(drop_first, "drop_first")
+    max_images = _check_count(max_images, "max_images", allow_none=True)
+    folder = Path(path)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"DiLiGenT folder not found: {folder}")
+    ldir_file = folder / "light_directions.txt"
+    if not ldir_file.is_file():
+        raise FileNotFoundError(f"{folder}: missing light_directions.txt (N x 3 unit light directions)")
+    lights = _read_rows(ldir_file, "light direction")
+    norms = np.linalg.norm(lights, axis=1)
+    bad = np.nonzero(np.abs(norms - 1.0) > UNIT_TOLERANCE)[0]
+    if bad.size:
+        raise ValueError(
+            f"{ldir_file}: light direction row {int(bad[0]) + 1} has length {norms[bad[0]]:.6g}; "
+            f"expected unit vectors (|len - 1| <= {UNIT_TOLERANCE}); {bad.size} bad row(s)"
+        )
+    lights = lights / norms[:, None]
+    n = lights.shape[0]
+
+    int_file = folder / "light_intensities.txt"
+    if int_file.is_file():
+        intens = _read_rows(int_file, "light intensity")
+        if intens.shape[0] != n:
+            raise ValueError(
+                f"{folder}: light_intensities.txt has {intens.shape[0]} rows but light_directions.txt has {n}"
+            )
+        if (intens <= 0).any():
+            row = int(np.nonzero((intens <= 0).any(axis=1))[0][0]) + 1
+            raise ValueError(f"{int_file} row {row}: light intensities must be > 0")
+    else:
+        warnings.warn(f"{folder}: no light_intensities.txt; assuming unit intensities", UserWarning, stacklevel=2)
+        intens = np.ones((n, 3))
+
+    names_file = folder / "filenames.txt"
+    if names_file.is_file():
+        names = [ln.strip() for ln in names_file.read_text().splitlines() if ln.strip()]
+        source = "filenames.txt"
+    else:
+        names = sorted(p.name for p in folder.glob("*.png") if not _is_aux_picture(p.name))
+        source = "*.png files"
+    if len(names) != n:
+        raise ValueError(f"{folder}: {len(names)} image names ({source}) but {n} light directions")
+
+    sel = slice(drop_first, None if max_images is None else drop_first + max_images)
+    names, lights, intens = names[sel], lights[sel], intens[sel]
+    if len(names) == 0:
+        raise ValueError(f"{folder}: no images left after drop_first={drop_first}, max_images={max_images}")
+
+    images = None
+    depth0 = None
+    for i, name in enumerate(names):
+        f = folder / name
+        if not f.is_file():
+            raise FileNotFoundError(f"{folder}: image {name!r} (number {i + 1 + drop_first}) not found")
+        depth = _png_info(f)[2]
+        img = _read_png(f)
+        if img.ndim == 3 and img.shape[2] == 4:
+            img = img[..., :3]
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValueError(f"{f}: expected an RGB image, got array of shape {img.shape}")
+        if images is None:
+            depth0 = depth
+            if depth == 8:
+                warnings.warn(
+                    f"{folder}: 8-bit images (expected 16-bit linear PNGs); values are divided by 255 "
+                    "and not linearised",
+                    UserWarning,
+                    stacklevel=2,
+                )
+            images = np.empty((len(names),) + img.shape, dtype=np.float32 if dtype == torch.float32 else np.float64)
+        elif img.shape != images.shape[1:]:
+            raise ValueError(f"{f}: image size {img.shape[:2]} differs from the first image's {images.shape[1:3]}")
+        elif depth != depth0:
+            raise ValueError(f"{f}: bit depth {depth} differs from the first image's {depth0}")
+        images[i] = img
+    images /= 65535.0 if depth0 == 16 else 255.0
+    if normalize_intensities:
+        images /= intens[:, None, None, :].astype(images.dtype)
+    height, width = images.shape[1:3]
+
+    mask_file = folder / "mask.png"
+    if mask_file.is_file():
+        m = _read_png(mask_file)
+        if m.ndim == 3:
+            m = m[..., :3].max(axis=-1) if m.shape[2] in (3, 4) else m[..., 0]
+        if m.shape != (height, width):
+            raise ValueError(f"{mask_file}: mask size {m.shape} differs from the image size {(height, width)}")
+        mask = m > 0
+    else:
+        warnings.warn(f"{folder}: no mask.png; every pixel is treated as valid", UserWarning, stacklevel=2)
+        mask = np.ones((height, width), dtype=bool)
+
+    normals = None
+    ngt_file = folder / "Normal_gt.mat"
+    if ngt_file.is_file():
+        import scipy.io
+
+        mat = scipy.io.loadmat(str(ngt_file))
+        if "Normal_gt" not in mat:
+            keys = [k for k in mat if not k.startswith("__")]
+            raise ValueError(f"{ngt_file}: no variable 'Normal_gt' (found {keys})")
+        normals = np.asarray(mat["Normal_gt"], dtype=np.float64)
+        if normals.shape != (height, width, 3):
+            raise ValueError(f"{ngt_file}: Normal_gt has shape {normals.shape}, expected {(height, width, 3)}")
+
+    def t(a):
+        return torch.as_tensor(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
+
+    return PhotometricDataset(
+        images=t(images),
+        lights=t(lights),
+        intensities=t(intens),
+        mask=torch.as_tensor(mask).to(device=device),
+        normals_gt=None if normals is None else t(normals),
+        names=list(names),
+        path=folder,
+    )
+
+
+def _to_numpy(x, name: str) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    elif not isinstance(x, np.ndarray):
+        raise TypeError(f"`{name}` must be a torch.Tensor or numpy array, got {type(x).__name__}")
+    return x
+
+
+def save_diligent(
+    path,
+    images,
+    lights,
+    intensities=None,
+    mask=None,
+    normals_gt=None,
+    overwrite: bool = False,
+    bit_depth: int = 16,
+    scale: Optional[float] = None,
+    names: Optional[Sequence[str]] = None,
+) -> Path:
+    r"""Write an image stack in the DiLiGenT layout (readable by :func:`load_diligent`).
+
+    Args:
+        path: output folder (created; must be empty or absent unless
+            ``overwrite=True``, in which case same-named files are replaced).
+        images: ``(L, H, W, 3)`` non-negative linear RGB images **as if lit by
+            unit-intensity lights** (what :func:`load_diligent` returns with
+            ``normalize_intensities=True``).
+        lights: ``(L, 3)`` light directions (normalised before writing).
+        intensities: optional ``(L, 3)`` positive RGB light intensities
+            (default ones). The recorded pixel is ``images * intensities``.
+        mask: optional ``(H, W)`` bool/0-1 mask (default: all valid).
+        normals_gt: optional ``(H, W, 3)`` normals written to ``Normal_gt.mat``.
+        overwrite: allow writing into a non-empty folder.
+        bit_depth: 16 (default, DiLiGenT) or 8.
+        scale: factor ``s`` with ``pixel / (2**bit_depth - 1) = s * images *
+            intensities``; default ``1 / max(images * intensities)`` so the
+            brightest value maps to the largest code. Values above 1 after
+            scaling are clipped (with a warning), negatives are clipped to 0.
+        names: optional image file names (default ``001.png``, ... zero padded
+            to at least 3 digits).
+
+    Scale bookkeeping: the file ``light_intensities.txt`` stores
+    ``s * intensities``, so loading with ``normalize_intensities=True`` gives
+    ``(pixel / max_code) / (s * intensities) = images`` back up to
+    quantisation (relative error below ``0.5 / 65535`` of the maximum for
+    16 bits).
+
+    Every PNG is read back and compared with the written codes; a mismatch
+    raises ``RuntimeError``.
+
+    Returns:
+        The folder path.
+
+    Example:
+        >>> L, H, W = 4, 8, 8
+        >>> imgs = torch.rand(L, H, W, 3)
+        >>> lights = torch.nn.functional.normalize(torch.rand(L, 3) + torch.tensor([0, 0, 1.0]), dim=-1)
+        >>> out = save_diligent(tmp_path / "obj", imgs, lights)  # doctest: +SKIP
+        >>> load_diligent(out).images.sub(imgs).abs().max() < 1e-4  # doctest: +SKIP
+        tensor(True)
+    """
+    images = _to_numpy(images, "images").astype(np.float64)
+    lights = _to_numpy(lights, "lights").astype(np.float64)
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise ValueError(f"`images` must have shape (L, H, W, 3), got {images.shape}")
+    n, height, width, _ = images.shape
+    if n == 0:
+        raise ValueError("`images` must contain at least one image")
+    if lights.shape != (n, 3):
+        raise ValueError(f"`lights` must have shape ({n}, 3) to match `images`, got {lights.shape}")
+    if not np.isfinite(images).all():
+        raise ValueError("`images` contains NaN or Inf values")
+    if not np.isfinite(lights).all():
+        raise ValueError("`lights` contains NaN or Inf values")
+    norms = np.linalg.norm(lights, axis=1)
+    if (norms < 1e-12).any():
+        raise ValueError(f"`lights` row {int(np.argmin(norms))} is a zero vector")
+    lights = lights / norms[:, None]
+    if intensities is None:
+        intensities = np.ones((n, 3))
+    else:
+        intensities = _to_numpy(intensities, "intensities").astype(np.float64)
+        if intensities.shape != (n, 3):
+            raise ValueError(f"`intensities` must have shape ({n}, 3), got {intensities.shape}")
+        if not np.isfinite(intensities).all() or (intensities <= 0).any():
+            raise ValueError("`intensities` must be finite and > 0")
+    if mask is None:
+        mask = np.ones((height, width), dtype=bool)
+    else:
+        mask = _to_numpy(mask, "mask")
+        if mask.shape != (height, width):
+            raise ValueError(f"`mask` must have shape ({height}, {width}), got {mask.shape}")
+        mask = mask.astype(bool)
+    if normals_gt is not None:
+        normals_gt = _to_numpy(normals_gt, "normals_gt").astype(np.float64)
+        if normals_gt.shape != (height, width, 3):
+            raise ValueError(f"`normals_gt` must have shape ({height}, {width}, 3), got {normals_gt.shape}")
+    if bit_depth not in (8, 16):
+        raise ValueError(f"`bit_depth` must be 8 or 16, got {bit_depth!r}")
+    if names is None:
+        digits = max(3, len(str(n)))
+        names = [f"{i + 1:0{digits}d}.png" for i in range(n)]
+    else:
+        names = [str(s) for s in names]
+        if len(names) != n or len(set(names)) != n:
+            raise ValueError(f"`names` must hold {n} distinct file names, got {len(names)}")
+        if any(not s.lower().endswith(".png") or "/" in s or _is_aux_picture(s) for s in names):
+            raise ValueError("`names` must be plain '*.png' file names not starting with 'mask'/'normal'")
+
+    raw = images * intensities[:, None, None, :]
+    if scale is None:
+        peak = float(raw.max())
+        scale = 1.0 / peak if peak > 0 else 1.0
+    else:
+        scale = float(scale)
+        if not np.isfinite(scale) or scale <= 0:
+            raise ValueError(f"`scale` must be a positive finite number, got {scale}")
+    max_code = (1 << bit_depth) - 1
+    scaled = raw * scale
+    if (scaled > 1.0 + 1e-9).any():
+        warnings.warn(
+            f"{int((scaled > 1.0 + 1e-9).sum())} values exceed the {bit_depth}-bit range after scaling; clipped",
+            UserWarning,
+            stacklevel=2,
+        )
+    if (scaled < 0).any():
+        warnings.warn(f"{int((scaled < 0).sum())} negative image values clipped to 0", UserWarning, stacklevel=2)
+    codes = np.rint(np.clip(scaled, 0.0, 1.0) * max_code).astype(np.uint16 if bit_depth == 16 else np.uint8)
+
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"`path` {folder} exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
+    folder.mkdir(parents=True, exist_ok=True)
+
+    for i, name in enumerate(names):
+        f = folder / name
+        _write_png(f, codes[i])
+        back = _read_png(f)
+        if back.dtype != codes.dtype or not np.array_equal(back, codes[i]):
+            raise RuntimeError(f"{f}: PNG read-back differs from the written {bit_depth}-bit data")
+    _write_png(folder / "mask.png", mask.astype(np.uint8) * 255)
+    (folder / "filenames.txt").write_text("".join(s + "\n" for s in names))
+    np.savetxt(folder / "light_directions.txt", lights, fmt="%.17g", delimiter=" ")
+    np.savetxt(folder / "light_intensities.txt", intensities * scale, fmt="%.17g", delimiter=" ")
+    if normals_gt is not None:
+        import scipy.io
+
+        scipy.io.savemat(str(folder / "Normal_gt.mat"), {"Normal_gt": normals_gt})
+    elif overwrite and (folder / "Normal_gt.mat").exists():
+        (folder / "Normal_gt.mat").unlink()
+    return folder

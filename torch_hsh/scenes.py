@@ -1,0 +1,606 @@
+r"""Synthetic photometric-stereo scenes: geometry, materials, textures, lights, cast shadows.
+
+Frame (the DiLiGenT frame, as in :mod:`torch_hsh.io.diligent`): ``x`` to the
+right, ``y`` up, ``z`` toward the camera, orthographic view along ``-z``.
+Image row 0 is the **top**: pixel ``(row, col)`` is at
+``x = col * pixel_size``, ``y = -row * pixel_size``. Height fields ``h(row,
+col)`` are ``z`` values in the same length unit as ``pixel_size``; their
+normals are ``normalize(-dh/dx, -dh/dy, 1)``.
+
+Randomness: every random function takes ``seed`` — an ``int``, a CPU
+``torch.Generator`` or ``None`` (fresh nondeterministic seed). Random numbers
+are drawn on the CPU and then moved to ``device``, so a given seed gives the
+same scene on every device.
+"""
+from __future__ import annotations
+
+import math
+import operator
+from typing import Optional, Tuple, Union
+
+import torch
+import torch.nn.functional as F
+
+from ._checks import check_dirs, check_tensor
+
+__all__ = [
+    "sphere_normals",
+    "bumpy_heightfield",
+    "heightfield_normals",
+    "material_regions",
+    "albedo_texture",
+    "srgb_to_linear",
+    "TEXTURE_SOURCES",
+    "diligent_like_lights",
+    "cone_lights",
+    "light_intensities",
+    "cast_shadow_mask",
+]
+
+#: ``skimage.data`` images shipped inside scikit-image (no download needed).
+TEXTURE_SOURCES = (
+    "astronaut",
+    "coffee",
+    "chelsea",
+    "rocket",
+    "immunohistochemistry",
+    "hubble_deep_field",
+    "colorwheel",
+    "brick",
+    "grass",
+    "gravel",
+    "camera",
+    "moon",
+)
+
+Seed = Union[int, torch.Generator, None]
+_FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+def _gen(seed: Seed) -> torch.Generator:
+    if isinstance(seed, torch.Generator):
+        if seed.device.type != "cpu":
+            raise ValueError(f"`seed` generator must be a CPU torch.Generator, got one on {seed.device}")
+        return seed
+    g = torch.Generator()
+    if seed is None:
+        g.seed()
+        return g
+    if isinstance(seed, bool):
+        raise TypeError(f"`seed` must be an int, a torch.Generator or None, got {seed!r}")
+    try:
+        g.manual_seed(operator.index(seed))
+    except TypeError:
+        raise TypeError(f"`seed` must be an int, a torch.Generator or None, got {type(seed).__name__}") from None
+    return g
+
+
+def _size(size, name: str = "size") -> Tuple[int, int]:
+    if isinstance(size, (tuple, list, torch.Size)):
+        if len(size) != 2:
+            raise ValueError(f"`{name}` must be an int or a pair (H, W), got {size!r}")
+        h, w = size
+    else:
+        h = w = size
+    try:
+        if isinstance(h, bool) or isinstance(w, bool):
+            raise TypeError
+        h, w = operator.index(h), operator.index(w)
+    except TypeError:
+        raise TypeError(f"`{name}` must be an int or a pair of ints (H, W), got {size!r}") from None
+    if h < 1 or w < 1:
+        raise ValueError(f"`{name}` must be positive, got {(h, w)}")
+    return h, w
+
+
+def _dtype(dtype) -> torch.dtype:
+    if dtype not in _FLOAT_DTYPES:
+        raise TypeError(f"`dtype` must be torch.float32 or torch.float64, got {dtype}")
+    return dtype
+
+
+def _positive(x, name: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        raise TypeError(f"`{name}` must be a positive number, got {x!r}")
+    if not math.isfinite(x) or x <= 0:
+        raise ValueError(f"`{name}` must be a positive finite number, got {x}")
+    return float(x)
+
+
+def _count(n, name: str, minimum: int = 1) -> int:
+    if isinstance(n, bool):
+        raise TypeError(f"`{name}` must be an integer, got {n!r}")
+    try:
+        n = operator.index(n)
+    except TypeError:
+        raise TypeError(f"`{name}` must be an integer, got {n!r} ({type(n).__name__})") from None
+    if n < minimum:
+        raise ValueError(f"`{name}` must be >= {minimum}, got {n}")
+    return n
+
+
+def _pixel_grid(h: int, w: int, dtype, device):
+    rows = torch.arange(h, dtype=dtype, device=device)[:, None].expand(h, w)
+    cols = torch.arange(w, dtype=dtype, device=device)[None, :].expand(h, w)
+    return rows, cols
+
+
+# --------------------------------------------------------------------------- #
+# geometry
+# --------------------------------------------------------------------------- #
+def sphere_normals(size, radius: float = 0.9, dtype=torch.float32, device=None):
+    r"""Normals of an orthographically viewed sphere centred in the image.
+
+    Args:
+        size: ``H`` (square) or ``(H, W)``.
+        radius: sphere radius as a fraction of ``min(H, W) / 2``, in ``(0, 1]``.
+
+    Returns:
+        ``(normals, mask)``: ``(H, W, 3)`` unit normals in the DiLiGenT frame
+        (x right, y up, z toward the camera; zero outside the mask) and the
+        ``(H, W)`` bool mask of pixel centres strictly inside the disc.
+
+    Example:
+        >>> n, m = sphere_normals(64)
+        >>> n.shape, bool(m[32, 32]), bool(m[0, 0])
+        (torch.Size([64, 64, 3]), True, False)
+        >>> n[8:31, 32, 1].min() > 0  # upper rows have normals pointing up (+y)
+        tensor(True)
+    """
+    h, w = _size(size)
+    radius = _positive(radius, "radius")
+    if radius > 1:
+        raise ValueError(f"`radius` must be in (0, 1], got {radius}")
+    dtype = _dtype(dtype)
+    rpx = radius * min(h, w) / 2.0
+    rows, cols = _pixel_grid(h, w, dtype, device)
+    x = (cols + 0.5 - w / 2.0) / rpx
+    y = -(rows + 0.5 - h / 2.0) / rpx
+    r2 = x * x + y * y
+    mask = r2 < 1.0
+    z = torch.sqrt(torch.clamp(1.0 - r2, min=0.0))
+    n = torch.stack([x, y, z], dim=-1)
+    n = F.normalize(n, dim=-1) * mask[..., None]
+    return n, mask
+
+
+def bumpy_heightfield(
+    size, n_bumps: int = 16, seed: Seed = None, smoothness: float = 0.1, dtype=torch.float32, device=None
+) -> torch.Tensor:
+    r"""A smooth random height field: a sum of isotropic Gaussian bumps and dents.
+
+    Bump ``k`` has a centre uniform over the image, width
+    ``sigma_k = smoothness * min(H, W) * U(0.6, 1.4)`` pixels and amplitude
+    ``+-sigma_k * U(0.3, 1.0)`` (random sign), so the steepest slope of a lone
+    bump is below ``exp(-1/2) ~ 0.61`` (about 31 degrees).
+
+    Args:
+        size: ``H`` or ``(H, W)``.
+        n_bumps: number of Gaussians (>= 0; 0 gives a flat field).
+        seed: int, CPU ``torch.Generator`` or None.
+        smoothness: relative bump width (> 0); larger is smoother.
+
+    Returns:
+        ``(H, W)`` heights in pixel units (use ``pixel_size=1`` with
+        :func:`heightfield_normals` and :func:`cast_shadow_mask`).
+
+    Example:
+        >>> hgt = bumpy_heightfield(64, n_bumps=8, seed=0)
+        >>> normals = heightfield_normals(hgt)
+        >>> hgt.shape, normals.shape
+        (torch.Size([64, 64]), torch.Size([64, 64, 3]))
+    """
+    h, w = _size(size)
+    n_bumps = _count(n_bumps, "n_bumps", minimum=0)
+    smoothness = _positive(smoothness, "smoothness")
+    dtype = _dtype(dtype)
+    g = _gen(seed)
+    u = torch.rand(n_bumps, 5, generator=g, dtype=torch.float64)
+    cr, cc = u[:, 0] * h, u[:, 1] * w
+    sigma = smoothness * min(h, w) * (0.6 + 0.8 * u[:, 2])
+    amp = sigma * (0.3 + 0.7 * u[:, 3]) * torch.where(u[:, 4] < 0.5, -1.0, 1.0).to(torch.float64)
+    rows, cols = _pixel_grid(h, w, torch.float64, "cpu")
+    out = torch.zeros(h, w, dtype=torch.float64)
+    for k in range(n_bumps):
+        d2 = (rows - cr[k]) ** 2 + (cols - cc[k]) ** 2
+        out += amp[k] * torch.exp(-0.5 * d2 / sigma[k] ** 2)
+    return out.to(device=device, dtype=dtype)
+
+
+def _extrapolate_pad(x: torch.Tensor) -> torch.Tensor:
+    """Pad the last two dims by one sample with linear extrapolation."""
+    top = 2 * x[..., :1, :] - x[..., 1:2, :]
+    bottom = 2 * x[..., -1:, :] - x[..., -2:-1, :]
+    x = torch.cat([top, x, bottom], dim=-2)
+    left = 2 * x[..., :, :1] - x[..., :, 1:2]
+    right = 2 * x[..., :, -1:] - x[..., :, -2:-1]
+    return torch.cat([left, x, right], dim=-1)
+
+
+def heightfield_normals(height: torch.Tensor, pixel_size: float = 1.0) -> torch.Tensor:
+    r"""Unit normals of a height field ``z = h(x, y)`` in the DiLiGenT frame.
+
+    ``n = normalize(-dh/dx, -dh/dy, 1)`` with ``x = col * pixel_size`` and
+    ``y = -row * pixel_size`` (row 0 at the top, y up), so
+    ``dh/dy = -(dh/drow) / pixel_size``. Derivatives are kornia's normalised
+    Sobel filter (``kornia.filters.spatial_gradient``, which returns
+    ``(d/dcol, d/drow)`` per pixel) after padding the field by one pixel with
+    linear extrapolation: exact for planes everywhere (kornia's own replicate
+    border would halve the slope on the border) and for quadratics away from
+    the border. Differentiable.
+
+    Args:
+        height: ``(..., H, W)`` float tensor with ``H, W >= 2``.
+        pixel_size: spacing between pixel centres, in the units of ``height``.
+
+    Returns:
+        ``(..., H, W, 3)`` unit normals (``n_z > 0``).
+
+    Example:
+        >>> rows, cols = torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij")
+        >>> n = heightfield_normals(0.5 * cols)  # rises to the right: normal tilts left
+        >>> torch.allclose(n[3, 3], torch.tensor([-0.5, 0.0, 1.0]) / 1.25 ** 0.5)
+        True
+    """
+    import kornia
+
+    check_tensor(height, "height", min_dims=2)
+    ps = _positive(pixel_size, "pixel_size")
+    hgt, wid = height.shape[-2:]
+    if hgt < 2 or wid < 2:
+        raise ValueError(f"`height` must be at least 2x2 in its last two dims, got {tuple(height.shape)}")
+    lead = height.shape[:-2]
+    x = _extrapolate_pad(height.reshape(-1, 1, hgt, wid))
+    grad = kornia.filters.spatial_gradient(x, mode="sobel", order=1, normalized=True)[..., 1:-1, 1:-1]
+    dh_dcol, dh_drow = grad[:, 0, 0], grad[:, 0, 1]
+    dh_dx = dh_dcol / ps
+    dh_dy = -dh_drow / ps
+    n = torch.stack([-dh_dx, -dh_dy, torch.ones_like(dh_dx)], dim=-1)
+    n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
+    return n.reshape(*lead, hgt, wid, 3)
+
+
+# --------------------------------------------------------------------------- #
+# materials and textures
+# --------------------------------------------------------------------------- #
+def material_regions(
+    size, n_regions: int = 6, seed: Seed = None, warp: float = 0.08, device=None
+) -> torch.Tensor:
+    r"""A label map of smooth Voronoi-like regions.
+
+    ``n_regions`` distinct seed pixels are drawn; every pixel gets the label
+    of the nearest seed after a smooth warp of the plane (a sum of four random
+    sinusoids of amplitude ``warp * min(H, W)`` pixels), so boundaries are
+    smooth curves rather than straight lines. Distances are measured between
+    warped positions, so each seed pixel keeps its own label and every label
+    ``0 .. n_regions-1`` occurs (ties go to the lower label).
+
+    Args:
+        size: ``H`` or ``(H, W)``.
+        n_regions: number of regions, ``1 <= n_regions <= H * W``.
+        seed: int, CPU ``torch.Generator`` or None.
+        warp: boundary waviness (>= 0; 0 gives a plain Voronoi diagram).
+
+    Returns:
+        ``(H, W)`` int64 labels.
+
+    Example:
+        >>> lab = material_regions(32, n_regions=4, seed=0)
+        >>> lab.shape, sorted(lab.unique().tolist())
+        (torch.Size([32, 32]), [0, 1, 2, 3])
+    """
+    h, w = _size(size)
+    n_regions = _count(n_regions, "n_regions")
+    if n_regions > h * w:
+        raise ValueError(f"`n_regions` must be <= H * W = {h * w}, got {n_regions}")
+    if isinstance(warp, bool) or not isinstance(warp, (int, float)) or not math.isfinite(warp) or warp < 0:
+        raise ValueError(f"`warp` must be a finite number >= 0, got {warp!r}")
+    g = _gen(seed)
+    idx = torch.randperm(h * w, generator=g)[:n_regions]
+    rows, cols = _pixel_grid(h, w, torch.float64, "cpu")
+    p = torch.stack([rows, cols], dim=-1).reshape(-1, 2)
+    if warp > 0:
+        k = 4
+        ang = torch.rand(k, generator=g, dtype=torch.float64) * 2 * math.pi
+        freq = (1.0 + 2.0 * torch.rand(k, generator=g, dtype=torch.float64)) * 2 * math.pi / min(h, w)
+        phase = torch.rand(k, 2, generator=g, dtype=torch.float64) * 2 * math.pi
+        dirs = torch.stack([torch.cos(ang), torch.sin(ang)], dim=-1) * freq[:, None]  # (k, 2)
+        arg = p @ dirs.T  # (HW, k)
+        amp = warp * min(h, w) / k
+        disp = torch.stack(
+            [torch.sin(arg + phase[:, 0]).sum(-1), torch.sin(1.3 * arg + phase[:, 1]).sum(-1)], dim=-1
+        )
+        p = p + amp * disp
+    centres = p[idx]
+    labels = torch.empty(h * w, dtype=torch.int64)
+    chunk = max(1, (1 << 22) // n_regions)
+    for s in range(0, h * w, chunk):
+        labels[s : s + chunk] = torch.cdist(p[s : s + chunk], centres).argmin(dim=-1)
+    labels[idx] = torch.arange(n_regions)  # seed pixels own their label even if warped points coincide
+    return labels.reshape(h, w).to(device)
+
+
+def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
+    r"""sRGB-encoded values in ``[0, 1]`` to linear (IEC 61966-2-1 piecewise curve).
+
+    ``x / 12.92`` for ``x <= 0.04045``, else ``((x + 0.055) / 1.055) ** 2.4``.
+
+    Example:
+        >>> srgb_to_linear(torch.tensor([0.0, 0.5, 1.0]))
+        tensor([0.0000, 0.2140, 1.0000])
+    """
+    check_tensor(x, "x")
+    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def albedo_texture(
+    size, seed: Seed = None, source: str = "astronaut", dtype=torch.float32, device=None
+) -> torch.Tensor:
+    r"""A linear-RGB albedo texture from a scikit-image sample picture.
+
+    The picture (one of :data:`TEXTURE_SOURCES`, all shipped inside
+    scikit-image, no download) is cropped to the target aspect ratio —
+    centred if ``seed`` is None, else a random crop covering 50-100 % of the
+    largest such crop, randomly mirrored — resized with anti-aliasing
+    (``skimage.transform.resize``), and converted from sRGB to linear.
+    Grey pictures are repeated over the 3 channels; alpha is dropped.
+
+    Args:
+        size: ``H`` or ``(H, W)``.
+        seed: None (deterministic centred crop), int or CPU ``torch.Generator``.
+        source: name of the ``skimage.data`` picture.
+
+    Returns:
+        ``(H, W, 3)`` linear albedo in ``[0, 1]``.
+
+    Example:
+        >>> tex = albedo_texture(32, source="coffee")
+        >>> tex.shape, bool(tex.min() >= 0), bool(tex.max() <= 1)
+        (torch.Size([32, 32, 3]), True, True)
+    """
+    import numpy as np
+    import skimage.data
+    import skimage.transform
+
+    h, w = _size(size)
+    dtype = _dtype(dtype)
+    if source not in TEXTURE_SOURCES:
+        raise ValueError(f"`source` must be one of {TEXTURE_SOURCES}, got {source!r}")
+    img = np.asarray(getattr(skimage.data, source)())
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=-1)
+    img = img[..., :3].astype(np.float64) / 255.0
+    ih, iw = img.shape[:2]
+    # largest crop with the target aspect ratio
+    ch, cw = (ih, min(iw, round(ih * w / h))) if iw * h >= ih * w else (min(ih, round(iw * h / w)), iw)
+    if seed is None:
+        r0, c0, flip = (ih - ch) // 2, (iw - cw) // 2, False
+    else:
+        u = torch.rand(4, generator=_gen(seed), dtype=torch.float64).tolist()
+        frac = 0.5 + 0.5 * u[0]
+        ch, cw = max(1, round(ch * frac)), max(1, round(cw * frac))
+        r0, c0 = int(u[1] * (ih - ch + 1)), int(u[2] * (iw - cw + 1))
+        r0, c0 = min(r0, ih - ch), min(c0, iw - cw)
+        flip = u[3] < 0.5
+    crop = img[r0 : r0 + ch, c0 : c0 + cw]
+    if flip:
+        crop = crop[:, ::-1]
+    out = skimage.transform.resize(crop, (h, w, 3), order=1, anti_aliasing=True, mode="reflect")
+    out = torch.as_tensor(np.clip(out, 0.0, 1.0), dtype=torch.float64)
+    return srgb_to_linear(out).to(device=device, dtype=dtype)
+
+
+# --------------------------------------------------------------------------- #
+# lights
+# --------------------------------------------------------------------------- #
+def diligent_like_lights(
+    n: int = 96, seed: Seed = None, max_polar_deg: float = 55.0, dtype=torch.float32, device=None
+) -> torch.Tensor:
+    r"""Light directions on a DiLiGenT-like planar grid in front of the object.
+
+    DiLiGenT uses 96 LEDs on a flat 8 x 12 grid facing the object. Here the
+    ``n`` lights sit on a ``rows x cols`` grid in the plane ``z = 1`` with
+    ``rows = round(sqrt(2 n / 3))`` (8 for ``n = 96``), ``cols = ceil(n /
+    rows)`` (12), equal spacing in x and y, scaled so that the corner light is
+    ``max_polar_deg`` from the view axis ``+z``; the first ``n`` grid points
+    are used in row-major order starting top-left (``+y``, ``-x``). With a
+    seed, each point is jittered by up to 15 % of the spacing (and pulled back
+    inside the ``max_polar_deg`` cone).
+
+    Returns:
+        ``(n, 3)`` unit directions (toward the lights), all with ``z > 0``.
+
+    Example:
+        >>> L = diligent_like_lights()
+        >>> L.shape, bool((L[:, 2] > 0).all())
+        (torch.Size([96, 3]), True)
+    """
+    n = _count(n, "n")
+    max_polar = _positive(max_polar_deg, "max_polar_deg")
+    if max_polar >= 90:
+        raise ValueError(f"`max_polar_deg` must be < 90, got {max_polar}")
+    dtype = _dtype(dtype)
+    rows = max(1, round(math.sqrt(2 * n / 3)))
+    cols = math.ceil(n / rows)
+    tmax = math.tan(math.radians(max_polar))
+    half_diag = 0.5 * math.hypot(cols - 1, rows - 1)
+    s = tmax / half_diag if half_diag > 0 else 0.0
+    i = torch.arange(n, dtype=torch.float64)
+    r, c = torch.div(i, cols, rounding_mode="floor"), torch.remainder(i, cols)
+    u = (c - (cols - 1) / 2) * s
+    v = ((rows - 1) / 2 - r) * s
+    if seed is not None and s > 0:
+        jit = (torch.rand(n, 2, generator=_gen(seed), dtype=torch.float64) * 2 - 1) * 0.15 * s
+        u, v = u + jit[:, 0], v + jit[:, 1]
+        rad = torch.sqrt(u * u + v * v)
+        shrink = torch.where(rad > tmax, tmax / rad.clamp(min=1e-300), torch.ones_like(rad))
+        u, v = u * shrink, v * shrink
+    d = torch.stack([u, v, torch.ones_like(u)], dim=-1)
+    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+    return d.to(device=device, dtype=dtype)
+
+
+def cone_lights(
+    n: int, max_angle_deg: float = 60.0, seed: Seed = None, dtype=torch.float32, device=None
+) -> torch.Tensor:
+    r"""Directions uniformly distributed (by solid angle) on the cap around ``+z``.
+
+    ``cos(theta) ~ U(cos(max_angle), 1)``, ``phi ~ U(0, 2 pi)``.
+
+    Args:
+        n: number of directions.
+        max_angle_deg: half-angle of the cap in degrees, in ``(0, 180]``.
+        seed: int, CPU ``torch.Generator`` or None.
+
+    Returns:
+        ``(n, 3)`` unit vectors.
+
+    Example:
+        >>> L = cone_lights(100, 30.0, seed=0)
+        >>> bool((L[:, 2] >= math.cos(math.radians(30.0)) - 1e-6).all())
+        True
+    """
+    n = _count(n, "n")
+    ang = _positive(max_angle_deg, "max_angle_deg")
+    if ang > 180:
+        raise ValueError(f"`max_angle_deg` must be in (0, 180], got {ang}")
+    dtype = _dtype(dtype)
+    u = torch.rand(n, 2, generator=_gen(seed), dtype=torch.float64)
+    cmin = math.cos(math.radians(ang))
+    ct = 1.0 - u[:, 0] * (1.0 - cmin)
+    st = torch.sqrt(torch.clamp(1.0 - ct * ct, min=0.0))
+    phi = 2 * math.pi * u[:, 1]
+    d = torch.stack([st * torch.cos(phi), st * torch.sin(phi), ct], dim=-1)
+    return d.to(device=device, dtype=dtype)
+
+
+def light_intensities(
+    n: int, seed: Seed = None, variation: float = 0.2, dtype=torch.float32, device=None
+) -> torch.Tensor:
+    r"""Random RGB light intensities around 1, like DiLiGenT's calibrated LEDs.
+
+    Every entry is independently ``U(1 - variation, 1 + variation)``.
+
+    Args:
+        n: number of lights.
+        seed: int, CPU ``torch.Generator`` or None.
+        variation: half-width of the range, in ``[0, 1)``.
+
+    Returns:
+        ``(n, 3)`` positive intensities.
+
+    Example:
+        >>> I = light_intensities(96, seed=0)
+        >>> I.shape, bool(((I >= 0.8) & (I <= 1.2)).all())
+        (torch.Size([96, 3]), True)
+    """
+    n = _count(n, "n")
+    if isinstance(variation, bool) or not isinstance(variation, (int, float)) or not 0 <= variation < 1:
+        raise ValueError(f"`variation` must be a number in [0, 1), got {variation!r}")
+    dtype = _dtype(dtype)
+    u = torch.rand(n, 3, generator=_gen(seed), dtype=torch.float64)
+    return (1.0 + variation * (2 * u - 1)).to(device=device, dtype=dtype)
+
+
+# --------------------------------------------------------------------------- #
+# cast shadows
+# --------------------------------------------------------------------------- #
+def cast_shadow_mask(
+    height: torch.Tensor,
+    lights: torch.Tensor,
+    pixel_size: float = 1.0,
+    n_steps: Optional[int] = None,
+) -> torch.Tensor:
+    r"""Light visibility of every pixel of a height field (cast shadows), by ray marching.
+
+    For light ``l`` (DiLiGenT frame, pointing toward the light) the ray from
+    the surface point of pixel ``p`` is marched in one-pixel steps along the
+    light's projection onto the image plane (``d col = l_x / |l_xy|``,
+    ``d row = -l_y / |l_xy|``, row 0 at the top); at step ``k`` the ray is
+    ``k * pixel_size * l_z / |l_xy|`` above its start. The pixel is in shadow
+    if the bilinearly interpolated height at some step exceeds the ray (by
+    more than a relative tolerance of ``1e-6``). Samples whose bilinear
+    footprint leaves the image never occlude. The march stops after
+    ``ceil((max h - min h) / rise_per_step)`` steps (no occluder can be
+    higher), at most the image diagonal, or ``n_steps`` if given.
+
+    Lights at ``+z`` see everything; lights at or below the horizon
+    (``l_z <= 0``) see nothing. Attached shadows (``n . l <= 0``) are not
+    the purpose of this mask, though faces turned away from the light are
+    usually found occluded by their own neighbourhood.
+
+    Implementation: for one light and one step the sub-pixel offset is the
+    same for every pixel, so the bilinear sample is a weighted sum of four
+    shifted slices of the (padded) height field: memory ``O(H W)`` beyond the
+    output, work ``O(L H W steps)``, vectorised over pixels, device agnostic.
+
+    Args:
+        height: ``(H, W)`` heights (same length unit as ``pixel_size``).
+        lights: ``(L, 3)`` light directions (normalised here).
+        pixel_size: distance between pixel centres.
+        n_steps: optional cap on the number of march steps per light.
+
+    Returns:
+        ``(L, H, W)`` bool, ``True`` where the light is **visible** (lit).
+
+    Example:
+        >>> hgt = torch.zeros(32, 32); hgt[12:20, 12:20] = 10.0
+        >>> vis = cast_shadow_mask(hgt, torch.tensor([[0.6, 0.0, 0.8], [0.0, 0.0, 1.0]]))
+        >>> bool(vis[0, 16, 8]), bool(vis[0, 16, 24]), bool(vis[1].all())
+        (False, True, True)
+    """
+    check_tensor(height, "height")
+    if height.dim() != 2:
+        raise ValueError(f"`height` must have shape (H, W), got {tuple(height.shape)}")
+    check_dirs(lights, "lights")
+    if lights.dim() != 2:
+        raise ValueError(f"`lights` must have shape (L, 3), got {tuple(lights.shape)}")
+    ps = _positive(pixel_size, "pixel_size")
+    if n_steps is not None:
+        n_steps = _count(n_steps, "n_steps", minimum=0)
+    H, W = height.shape
+    L = lights.shape[0]
+    dev = height.device
+    hgt = height.detach()
+    lts = lights.detach().to(device="cpu", dtype=torch.float64)
+    norm = torch.linalg.vector_norm(lts, dim=-1)
+    if bool((norm == 0).any()):
+        raise ValueError(f"`lights` row {int(torch.nonzero(norm == 0)[0])} is a zero vector")
+    lts = (lts / norm[:, None]).tolist()
+    vis = torch.ones(L, H, W, dtype=torch.bool, device=dev)
+    if L == 0 or H * W == 0:
+        return vis
+    h_min, h_max = float(hgt.min()), float(hgt.max())
+    h_range = h_max - h_min
+    tol = 1e-6 * max(1.0, abs(h_min), abs(h_max))
+    cap = math.ceil(math.hypot(H, W))
+    if n_steps is not None:
+        cap = min(cap, n_steps)
+    low = h_min - 1e3 * (h_range + 1.0)  # padding: far below every ray, never occludes
+    for i, (lx, ly, lz) in enumerate(lts):
+        if lz <= 0:
+            vis[i] = False
+            continue
+        lxy = math.hypot(lx, ly)
+        if lxy <= 1e-9 * lz or h_range <= 0:
+            continue
+        dr, dc = -ly / lxy, lx / lxy
+        rise = ps * lz / lxy
+        steps = min(cap, math.ceil(h_range / rise))
+        if steps <= 0:
+            continue
+        pad = math.ceil(steps * max(abs(dr), abs(dc))) + 2
+        big = F.pad(hgt[None, None], (pad, pad, pad, pad), value=low)[0, 0]
+        occ = torch.zeros(H, W, dtype=torch.bool, device=dev)
+        for k in range(1, steps + 1):
+            yr, yc = k * dr, k * dc
+            r0, c0 = math.floor(yr), math.floor(yc)
+            fr, fc = yr - r0, yc - c0
+            r0 += pad
+            c0 += pad
+            top = big[r0 : r0 + H, c0 : c0 + W] * (1 - fc) + big[r0 : r0 + H, c0 + 1 : c0 + 1 + W] * fc
+            bot = big[r0 + 1 : r0 + 1 + H, c0 : c0 + W] * (1 - fc) + big[r0 + 1 : r0 + 1 + H, c0 + 1 : c0 + 1 + W] * fc
+            sample = top * (1 - fr) + bot * fr
+            occ |= sample > hgt + (k * rise + tol)
+        vis[i] = ~occ
+    return vis
