@@ -15,3 +15,24 @@ from .basis import (
     num_hsh,
     num_isotropic,
 )
+from .frames import isotropic_triple, local_frame, reflect, to_local, to_world
+from . import bases, frames, io  # noqa: F401
+from .bases import available_bases, get_basis
+from .nn import HSH, HelmholtzBRDF
+from .quadrature import direction_quadrature, gauss_legendre, isotropic_quadrature, monte_carlo_directions
+from .fitting import (
+    brdf_energy,
+    directional_albedo,
+    energy_accuracy,
+    evaluate,
+    fit,
+    normal_exitance_energy,
+    normal_exitance_to_isotropic,
+    project,
+    project_normal_exitance,
+    reconstruct,
+    truncate,
+)
+from .spectra import lambertian_spectrum, mirror_spectrum, mirror_spectrum_printed
+from . import brdf  # noqa: E402,F401  (analytic BRDF models: torch_hsh.brdf.get_model)
+from . import scenes  # noqa: E402,F401  (synthetic photometric-stereo scenes: torch_hsh.scenes)
