@@ -30,6 +30,18 @@ infinite at the horizon ``z = 0``: within ``eps`` of the horizon (1e-12 in
 float64, 1e-6 in float32) the derivative through that factor is cut to zero,
 so gradients stay finite everywhere; values stay exact.
 
+Performance layout: kernels build feature-major ``(features, N)`` tables so each
+recurrence step and each column gather (``index_select`` along dim 0) touches
+contiguous rows; the isotropic normalisation is folded into the gathered
+tables (no separate scaling pass), and ``helmholtz_isotropic(w, w)`` with the
+same tensor object computes the polar table once. Large batches are evaluated
+in row chunks of about ``2**20`` output elements written into one
+preallocated ``(N, K)`` output (temporaries stay cache-sized; no full-size
+intermediates are allocated); the backward pass recomputes each chunk with
+autograd (chunk-wise checkpointing; double backward is supported by a full
+recomputation). Small batches and ``torch.func`` transforms use the plain
+autograd path. Outputs are always contiguous ``(..., K)``.
+
 Inputs are normalised inside the functions. **Directions strictly below the
 horizon (z < 0) and zero-length vectors evaluate to 0, with zero gradient**:
 the bases are supported on the upper hemisphere only, as a BRDF is.
@@ -203,17 +215,23 @@ def _hsh_gather(order: int):
 def _iso_gather(order: int):
     P = order
     _, _, _, col = _polar_consts(P)
-    ia, ib, c = [], [], []
+    L = len(col)
+    # out = X[i1] * Y[j1] + X[i2] * Y[j2] with X = [R_i, 0] (L + 1 columns) and
+    # Y = [R_o G / sqrt2, R_o G] (2L columns): the normalisation 1/sqrt(2 + 2 delta_pr)
+    # is folded into the tables (p == r: single product, second term hits the zero column).
+    i1, j1, i2, j2 = [], [], [], []
     for p, r, q in _iso_list(P):
-        ia.append(col[(p, q)])
-        ib.append(col[(r, q)])
-        c.append(0.5 if p == r else 1.0 / math.sqrt(2.0))
+        a, b = col[(p, q)], col[(r, q)]
+        if p == r:
+            i1.append(a), j1.append(L + a), i2.append(L), j2.append(0)
+        else:
+            i1.append(a), j1.append(b), i2.append(b), j2.append(a)
     # m of every polar-table column (to attach the azimuthal factor G_q)
-    qcol = [0] * len(col)
+    qcol = [0] * L
     for (n, m), cc in col.items():
         qcol[cc] = m
     g_scale = [1.0] + [math.sqrt(2.0)] * P
-    return ia, ib, c, qcol, g_scale
+    return i1, j1, i2, j2, qcol, g_scale
 
 
 @lru_cache(maxsize=None)
@@ -269,26 +287,40 @@ def _safe_s(z: torch.Tensor) -> torch.Tensor:
     return torch.where(zp > eps, live, frozen)
 
 
-def _polar_table(z: torch.Tensor, order: int) -> torch.Tensor:
-    """Normalised shifted-Legendre table, (N, L) with L = (P+1)(P+2)/2 (block layout)."""
+def _col(key: tuple, values, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """Cached constant as a ``(len, 1)`` column (broadcasts against ``(len, N)`` tables)."""
+    return _const(key, values, device, dtype).unsqueeze(-1)
+
+
+def _polar_table_t(z: torch.Tensor, order: int) -> torch.Tensor:
+    """Feature-major normalised shifted-Legendre table, ``(L, N)``, L = (P+1)(P+2)/2.
+
+    Row layout: blocks j = n - m = 0..P, block j holding m = 0..P-j. Every
+    recurrence step works on contiguous rows of length N.
+    """
     diag, alpha, beta, _ = _polar_consts(order)
     dev, dt = z.device, z.dtype
-    t = (2.0 * z - 1.0).unsqueeze(-1)
-    d0 = _const(("diag", order), diag, dev, dt)
-    blocks = [d0.expand(z.shape[0], order + 1)]
+    t = (2.0 * z - 1.0).unsqueeze(0)
+    d0 = _col(("diag", order), diag, dev, dt)
+    blocks = [d0.expand(order + 1, z.shape[0])]
     if order >= 1:
-        a1 = _const(("alpha", order, 1), alpha[0], dev, dt)
+        a1 = _col(("alpha", order, 1), alpha[0], dev, dt)
         blocks.append(t * (a1 * d0[:order]))
     for j in range(2, order + 1):
         mj = order + 1 - j
-        aj = _const(("alpha", order, j), alpha[j - 1], dev, dt)
-        bj = _const(("beta", order, j), beta[j - 1], dev, dt)
-        blocks.append((t * aj) * blocks[j - 1][:, :mj] - bj * blocks[j - 2][:, :mj])
-    return torch.cat(blocks, dim=-1)
+        aj = _col(("alpha", order, j), alpha[j - 1], dev, dt)
+        bj = _col(("beta", order, j), beta[j - 1], dev, dt)
+        blocks.append((aj * t) * blocks[j - 1][:mj] - bj * blocks[j - 2][:mj])
+    return torch.cat(blocks, dim=0)
 
 
-def _azimuth_table(x, y, z, valid, order: int) -> torch.Tensor:
-    """(N, 2P+1): [s^m Re(x+iy)^m for m=0..P, s^m Im(x+iy)^m for m=1..P], masked and scaled."""
+def _polar_table(z: torch.Tensor, order: int) -> torch.Tensor:
+    """Normalised shifted-Legendre table, (N, L) with L = (P+1)(P+2)/2 (block layout)."""
+    return _polar_table_t(z, order).t().contiguous()
+
+
+def _azimuth_table_t(x, y, z, valid, order: int) -> torch.Tensor:
+    """(2P+1, N): [s^m Re(x+iy)^m for m=0..P, s^m Im(x+iy)^m for m=1..P], masked and scaled."""
     P = order
     _, _, az_scale = _hsh_gather(P)
     mask = valid.to(z.dtype)
@@ -305,27 +337,39 @@ def _azimuth_table(x, y, z, valid, order: int) -> torch.Tensor:
             cr, ci = cr * u - ci * w, cr * w + ci * u
             re.append(cr)
             im.append(ci)
-    tab = torch.stack(re + im, dim=-1)
-    return tab * _const(("azs", P), az_scale, z.device, z.dtype)
+    tab = torch.stack(re + im, dim=0)
+    return tab * _col(("azs", P), az_scale, z.device, z.dtype)
 
 
-def _hsh_flat(d: torch.Tensor, order: int) -> torch.Tensor:
+def _hsh_flat_t(d: torch.Tensor, order: int) -> torch.Tensor:
+    """HSH of flat (N, 3) directions, feature-major ``(K, N)``."""
     x, y, z, valid = _unit(d)
-    R = _polar_table(z, order)
-    A = _azimuth_table(x, y, z, valid, order)
+    R = _polar_table_t(z, order)
+    A = _azimuth_table_t(x, y, z, valid, order)
     ridx, aidx, _ = _hsh_gather(order)
     ri = _const(("hsh_r", order), ridx, d.device, None)
     ai = _const(("hsh_a", order), aidx, d.device, None)
-    return R.index_select(-1, ri) * A.index_select(-1, ai)
+    return R.index_select(0, ri) * A.index_select(0, ai)
 
 
-def _iso_kernel(zi, zo, a, rho, sio, valid, order: int) -> torch.Tensor:
+def _hsh_flat(d: torch.Tensor, order: int) -> torch.Tensor:
+    """HSH of flat (N, 3) directions, ``(N, K)`` contiguous."""
+    return _hsh_flat_t(d, order).t().contiguous()
+
+
+def _iso_kernel(zi, zo, a, rho, sio, valid, order: int, same: bool = False) -> torch.Tensor:
     """Isotropic Helmholtz basis from cos(theta_i), cos(theta_o), Re c, |c|^2 and s_i s_o.
 
-    ``a = sin_i sin_o cos(dphi)``, ``rho = sin_i^2 sin_o^2``, ``sio = s_i s_o``.
+    ``a = sin_i sin_o cos(dphi)``, ``rho = sin_i^2 sin_o^2``, ``sio = s_i s_o``;
+    all ``(N,)``. Returns ``(N, K)`` contiguous.
     """
+    return _iso_kernel_t(zi, zo, a, rho, sio, valid, order, same).t().contiguous()
+
+
+def _iso_kernel_t(zi, zo, a, rho, sio, valid, order: int, same: bool = False) -> torch.Tensor:
+    """Feature-major ``(K, N)`` version of :func:`_iso_kernel` (``same``: zi is zo)."""
     P = order
-    ia, ib, c, qcol, g_scale = _iso_gather(P)
+    i1, j1, i2, j2, qcol, g_scale = _iso_gather(P)
     dev, dt = zi.device, zi.dtype
     mask = valid.to(dt)
     # G_q = (s_i s_o)^q Re(c^q) (times sqrt 2 for q > 0), via V_{q+1} = 2 a' V_q - rho' V_{q-1}
@@ -336,14 +380,18 @@ def _iso_kernel(zi, zo, a, rho, sio, valid, order: int) -> torch.Tensor:
         G.append(a1 * mask)
         for _ in range(2, P + 1):
             G.append(2.0 * a1 * G[-1] - r1 * G[-2])
-    G = torch.stack(G, dim=-1) * _const(("gsc", P), g_scale, dev, dt)
-    Ri = _polar_table(zi, P)
-    Ro = _polar_table(zo, P) * G.index_select(-1, _const(("qcol", P), qcol, dev, None))
-    ia_t = _const(("iso_a", P), ia, dev, None)
-    ib_t = _const(("iso_b", P), ib, dev, None)
-    out = Ri.index_select(-1, ia_t) * Ro.index_select(-1, ib_t)
-    out = out.addcmul(Ri.index_select(-1, ib_t), Ro.index_select(-1, ia_t))
-    return out * _const(("iso_c", P), c, dev, dt)
+    G = torch.stack(G, dim=0) * _col(("gsc", P), g_scale, dev, dt)
+    Ri = _polar_table_t(zi, P)
+    Ro = (Ri if same else _polar_table_t(zo, P)) * G.index_select(0, _const(("qcol", P), qcol, dev, None))
+    X = torch.cat([Ri, Ri.new_zeros(1, Ri.shape[1])], dim=0)
+    Y = torch.cat([Ro * (1.0 / math.sqrt(2.0)), Ro], dim=0)
+    out = X.index_select(0, _const(("iso_i1", P), i1, dev, None)) * Y.index_select(
+        0, _const(("iso_j1", P), j1, dev, None)
+    )
+    return out.addcmul(
+        X.index_select(0, _const(("iso_i2", P), i2, dev, None)),
+        Y.index_select(0, _const(("iso_j2", P), j2, dev, None)),
+    )
 
 
 def _broadcast_pair(wi: torch.Tensor, wo: torch.Tensor):
@@ -351,6 +399,150 @@ def _broadcast_pair(wi: torch.Tensor, wo: torch.Tensor):
     wi = wi.expand(*lead, 3).reshape(-1, 3)
     wo = wo.expand(*lead, 3).reshape(-1, 3)
     return lead, wi, wo
+
+
+def _iso_dirs(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
+    """Isotropic basis of flat local directions (N, 3); ``wo is wi`` shares the polar table."""
+    same = wo is wi
+    xi, yi, zi, vi = _unit(wi)
+    if same:
+        xo, yo, zo, vo = xi, yi, zi, vi
+    else:
+        xo, yo, zo, vo = _unit(wo)
+    a = xi * xo + yi * yo
+    rho = (xi * xi + yi * yi) * (xo * xo + yo * yo)
+    if order >= 1:
+        si = _safe_s(zi)
+        sio = si * si if same else si * _safe_s(zo)
+    else:
+        sio = zi
+    return _iso_kernel_t(zi, zo, a, rho, sio, vi & vo, order, same=same)
+
+
+def _iso_cosines_flat(zi: torch.Tensor, zo: torch.Tensor, cd: torch.Tensor, order: int) -> torch.Tensor:
+    valid = (zi >= 0) & (zo >= 0) & (zi <= 1) & (zo <= 1)
+    zi_c = zi.clamp(0.0, 1.0)
+    zo_c = zo.clamp(0.0, 1.0)
+    rho = (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c)
+    eps = _horizon_eps(zi.dtype)
+    sin_prod = torch.where(rho > eps, torch.sqrt(rho.clamp(min=eps)), torch.sqrt(rho.detach()))
+    a = sin_prod * cd.clamp(-1.0, 1.0)
+    sio = _safe_s(zi_c) * _safe_s(zo_c)
+    return _iso_kernel_t(zi_c, zo_c, a, rho, sio, valid, order)
+
+
+def _iso_world_flat(wi: torch.Tensor, wo: torch.Tensor, nrm: torch.Tensor, order: int) -> torch.Tensor:
+    wi = _normalize3(wi)
+    wo = _normalize3(wo)
+    nrm = _normalize3(nrm)
+    zi = (wi * nrm).sum(-1)
+    zo = (wo * nrm).sum(-1)
+    valid = (zi >= 0) & (zo >= 0) & ((nrm * nrm).sum(-1) > 0.5) & ((wi * wi).sum(-1) > 0.5) & ((wo * wo).sum(-1) > 0.5)
+    zi_c = zi.clamp(0.0, 1.0)
+    zo_c = zo.clamp(0.0, 1.0)
+    a = (wi * wo).sum(-1) - zi * zo
+    rho = (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c)
+    sio = _safe_s(zi_c) * _safe_s(zo_c)
+    return _iso_kernel_t(zi_c, zo_c, a, rho, sio, valid, order)
+
+
+def _aniso_flat(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
+    Hi = _hsh_flat_t(wi, order)
+    Ho = Hi if wo is wi else _hsh_flat_t(wo, order)
+    j, k, c = _aniso_gather(order)
+    dev, dt = Hi.device, Hi.dtype
+    jt = _const(("an_j", order), j, dev, None)
+    kt = _const(("an_k", order), k, dev, None)
+    out = Hi.index_select(0, jt) * Ho.index_select(0, kt)
+    out = out.addcmul(Hi.index_select(0, kt), Ho.index_select(0, jt))
+    return out.mul_(_col(("an_c", order), c, dev, dt))
+
+
+# --------------------------------------------------------------------------
+# Row-chunked evaluation (cache-sized blocks, one (N, K) allocation)
+# --------------------------------------------------------------------------
+#: Target number of output elements per row chunk: keeps every temporary of a
+#: kernel in cache and avoids allocating several full (N, K) intermediates.
+_CHUNK_ELEMS = 1 << 20
+
+
+def _functorch_active() -> bool:
+    try:
+        return bool(torch._C._are_functorch_transforms_active())
+    except AttributeError:  # pragma: no cover - older torch
+        return False
+
+
+class _RowChunked(torch.autograd.Function):
+    """Evaluate a row-wise kernel ``fn`` chunk by chunk into one preallocated output.
+
+    Backward recomputes each chunk with autograd (chunk-wise checkpointing), so
+    no graph over full-size intermediates is kept. Under ``create_graph`` the
+    backward is itself differentiable (full recomputation from the saved inputs).
+    """
+
+    @staticmethod
+    def forward(ctx, fn, K, rows, *inputs):
+        n = inputs[0].shape[0]
+        out = inputs[0].new_empty((n, K))
+        for s in range(0, n, rows):
+            out[s : s + rows] = fn(*[x[s : s + rows] for x in inputs])
+        ctx.fn, ctx.rows = fn, rows
+        ctx.save_for_backward(*inputs)
+        return out
+
+    @staticmethod
+    def backward(ctx, gout):
+        inputs = ctx.saved_tensors
+        needs = ctx.needs_input_grad[3:]
+        fn, rows = ctx.fn, ctx.rows
+        want = [i for i, nd in enumerate(needs) if nd]
+        grads = [None] * len(inputs)
+        if not want:
+            return (None, None, None, *grads)
+        if torch.is_grad_enabled():  # create_graph=True: keep the backward differentiable
+            xs = [x if needs[i] else x.detach() for i, x in enumerate(inputs)]
+            y = fn(*xs)
+            gs = torch.autograd.grad(y, [xs[i] for i in want], gout, create_graph=True, allow_unused=True)
+            for i, g in zip(want, gs):
+                grads[i] = torch.zeros_like(inputs[i]) if g is None else g
+            return (None, None, None, *grads)
+        for i in want:
+            grads[i] = torch.zeros_like(inputs[i])
+        for s in range(0, inputs[0].shape[0], rows):
+            with torch.enable_grad():
+                xs = [x[s : s + rows].detach().requires_grad_(needs[i]) for i, x in enumerate(inputs)]
+                y = fn(*xs)
+                gs = torch.autograd.grad(y, [xs[i] for i in want], gout[s : s + rows], allow_unused=True)
+            for i, g in zip(want, gs):
+                if g is not None:
+                    grads[i][s : s + rows] = g
+        return (None, None, None, *grads)
+
+
+def _run_rows(fn, K: int, *inputs: torch.Tensor) -> torch.Tensor:
+    """``fn(*inputs)`` for row-aligned inputs ``(N, ...)``, chunked over rows when large.
+
+    ``fn`` returns a feature-major ``(K, n)`` block; the result is ``(N, K)`` contiguous.
+    """
+    n = inputs[0].shape[0]
+    rows = max(1, _CHUNK_ELEMS // max(K, 1))
+    if n <= rows or _functorch_active():
+        return fn(*inputs).t().contiguous()
+    return _RowChunked.apply(lambda *xs: fn(*xs).t(), K, rows, *inputs)
+
+
+def _check_group(named, dirs: bool = True) -> None:
+    """Type checks, then device/dtype agreement, then per-tensor shape/value checks."""
+    for nm, t in named:
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"`{nm}` must be a torch.Tensor, got {type(t).__name__}")
+    check_same(named)
+    for nm, t in named:
+        if dirs:
+            check_dirs(t, nm)
+        else:
+            check_tensor(t, nm)
 
 
 # --------------------------------------------------------------------------
@@ -373,14 +565,15 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
         >>> y = torch_hsh.hsh(torch.tensor([0.0, 0.0, 1.0]), order=2)
         >>> y.shape
         torch.Size([9])
-        >>> float(y[0]) == (1 / (2 * math.pi)) ** 0.5
+        >>> abs(float(y[0]) - (1 / (2 * math.pi)) ** 0.5) < 1e-6  # H_0^0 = 1/sqrt(2 pi)
         True
     """
     check_dirs(dirs, "dirs")
     order = check_order(order)
     lead = dirs.shape[:-1]
-    out = _hsh_flat(dirs.reshape(-1, 3), order)
-    return out.reshape(*lead, (order + 1) ** 2)
+    K = (order + 1) ** 2
+    out = _run_rows(lambda d: _hsh_flat_t(d, order), K, dirs.reshape(-1, 3))
+    return out.reshape(*lead, K)
 
 
 def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
@@ -409,18 +602,16 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
         >>> torch_hsh.helmholtz_isotropic(wi, wo, 3).shape
         torch.Size([10, 20])
     """
-    check_dirs(wi, "wi")
-    check_dirs(wo, "wo")
-    check_same([("wi", wi), ("wo", wo)])
+    _check_group([("wi", wi), ("wo", wo)])
     order = check_order(order)
-    lead, wi, wo = _broadcast_pair(wi, wo)
-    xi, yi, zi, vi = _unit(wi)
-    xo, yo, zo, vo = _unit(wo)
-    a = xi * xo + yi * yo
-    rho = (xi * xi + yi * yi) * (xo * xo + yo * yo)
-    sio = _safe_s(zi) * _safe_s(zo) if order >= 1 else zi
-    out = _iso_kernel(zi, zo, a, rho, sio, vi & vo, order)
-    return out.reshape(*lead, out.shape[-1])
+    K = (order + 1) * (order + 2) * (order + 3) // 6
+    if wi is wo:  # one direction set: the polar table is computed once
+        lead = wi.shape[:-1]
+        out = _run_rows(lambda w: _iso_dirs(w, w, order), K, wi.reshape(-1, 3))
+    else:
+        lead, wi, wo = _broadcast_pair(wi, wo)
+        out = _run_rows(lambda a, b: _iso_dirs(a, b, order), K, wi, wo)
+    return out.reshape(*lead, K)
 
 
 def helmholtz_isotropic_cosines(
@@ -443,22 +634,13 @@ def helmholtz_isotropic_cosines(
         >>> torch_hsh.helmholtz_isotropic_cosines(c, c, torch.tensor([-1.0]), 2).shape
         torch.Size([1, 10])
     """
-    for n, t in (("cos_i", cos_i), ("cos_o", cos_o), ("cos_dphi", cos_dphi)):
-        check_tensor(t, n)
-    check_same([("cos_i", cos_i), ("cos_o", cos_o), ("cos_dphi", cos_dphi)])
+    _check_group([("cos_i", cos_i), ("cos_o", cos_o), ("cos_dphi", cos_dphi)], dirs=False)
     order = check_order(order)
     lead = broadcast_shapes([("cos_i", cos_i.shape), ("cos_o", cos_o.shape), ("cos_dphi", cos_dphi.shape)])
     zi, zo, cd = (t.expand(lead).reshape(-1) for t in (cos_i, cos_o, cos_dphi))
-    valid = (zi >= 0) & (zo >= 0) & (zi <= 1) & (zo <= 1)
-    zi_c = zi.clamp(0.0, 1.0)
-    zo_c = zo.clamp(0.0, 1.0)
-    rho = (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c)
-    eps = _horizon_eps(zi.dtype)
-    sin_prod = torch.where(rho > eps, torch.sqrt(rho.clamp(min=eps)), torch.sqrt(rho.detach()))
-    a = sin_prod * cd.clamp(-1.0, 1.0)
-    sio = _safe_s(zi_c) * _safe_s(zo_c)
-    out = _iso_kernel(zi_c, zo_c, a, rho, sio, valid, order)
-    return out.reshape(*lead, out.shape[-1])
+    K = (order + 1) * (order + 2) * (order + 3) // 6
+    out = _run_rows(lambda a, b, c: _iso_cosines_flat(a, b, c, order), K, zi, zo, cd)
+    return out.reshape(*lead, K)
 
 
 def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
@@ -483,21 +665,17 @@ def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> tor
         >>> torch_hsh.helmholtz_anisotropic(w, w, 1).shape
         torch.Size([1, 10])
     """
-    check_dirs(wi, "wi")
-    check_dirs(wo, "wo")
-    check_same([("wi", wi), ("wo", wo)])
+    _check_group([("wi", wi), ("wo", wo)])
     order = check_order(order, max_order=MAX_ANISOTROPIC_ORDER)
-    lead, wi, wo = _broadcast_pair(wi, wo)
-    Hi = _hsh_flat(wi, order)
-    Ho = _hsh_flat(wo, order)
-    j, k, c = _aniso_gather(order)
-    dev, dt = Hi.device, Hi.dtype
-    jt = _const(("an_j", order), j, dev, None)
-    kt = _const(("an_k", order), k, dev, None)
-    out = Hi.index_select(-1, jt) * Ho.index_select(-1, kt)
-    out = out.addcmul(Hi.index_select(-1, kt), Ho.index_select(-1, jt))
-    out = out * _const(("an_c", order), c, dev, dt)
-    return out.reshape(*lead, out.shape[-1])
+    K = (order + 1) ** 2
+    K = K * (K + 1) // 2
+    if wi is wo:
+        lead = wi.shape[:-1]
+        out = _run_rows(lambda w: _aniso_flat(w, w, order), K, wi.reshape(-1, 3))
+    else:
+        lead, wi, wo = _broadcast_pair(wi, wo)
+        out = _run_rows(lambda a, b: _aniso_flat(a, b, order), K, wi, wo)
+    return out.reshape(*lead, K)
 
 
 def helmholtz_isotropic_world(
@@ -527,25 +705,13 @@ def helmholtz_isotropic_world(
         >>> torch_hsh.helmholtz_isotropic_world(l, n, n, 2).shape
         torch.Size([1, 10])
     """
-    for nm, t in (("wi", wi), ("wo", wo), ("normal", normal)):
-        check_dirs(t, nm)
-    check_same([("wi", wi), ("wo", wo), ("normal", normal)])
+    _check_group([("wi", wi), ("wo", wo), ("normal", normal)])
     order = check_order(order)
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1]), ("normal", normal.shape[:-1])])
     wi, wo, nrm = (t.expand(*lead, 3).reshape(-1, 3) for t in (wi, wo, normal))
-    wi = _normalize3(wi)
-    wo = _normalize3(wo)
-    nrm = _normalize3(nrm)
-    zi = (wi * nrm).sum(-1)
-    zo = (wo * nrm).sum(-1)
-    valid = (zi >= 0) & (zo >= 0) & ((nrm * nrm).sum(-1) > 0.5) & ((wi * wi).sum(-1) > 0.5) & ((wo * wo).sum(-1) > 0.5)
-    zi_c = zi.clamp(0.0, 1.0)
-    zo_c = zo.clamp(0.0, 1.0)
-    a = (wi * wo).sum(-1) - zi * zo
-    rho = (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c)
-    sio = _safe_s(zi_c) * _safe_s(zo_c)
-    out = _iso_kernel(zi_c, zo_c, a, rho, sio, valid, order)
-    return out.reshape(*lead, out.shape[-1])
+    K = (order + 1) * (order + 2) * (order + 3) // 6
+    out = _run_rows(lambda a, b, c: _iso_world_flat(a, b, c, order), K, wi, wo, nrm)
+    return out.reshape(*lead, K)
 
 
 def _normalize3(d: torch.Tensor) -> torch.Tensor:
