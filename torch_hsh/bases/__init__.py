@@ -14,5 +14,6 @@ from __future__ import annotations
 
 from ._base import Basis, available_bases, get_basis, register_basis
 from . import helmholtz  # noqa: F401  (registers the Helmholtz HSH bases)
+from . import westin, gautron, zernike, hbasis  # noqa: F401,E402  (register the comparison bases)
 
 __all__ = ["Basis", "available_bases", "get_basis", "register_basis"]

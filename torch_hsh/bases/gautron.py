@@ -1,0 +1,166 @@
+r"""Unsymmetrised HSH product bases of Gautron et al. (2004): ``gautron_hsh`` and ``gautron_hsh_isotropic``.
+
+* ``gautron_hsh``: :math:`H_p^q(\omega_i) H_r^s(\omega_o)` for **every ordered** pair of
+  flat HSH indices ``(j, k)``: :math:`(P+1)^4` functions, orthonormal over
+  :math:`\Omega_i\times\Omega_o` but **not reciprocal** (``B_{jk}(wi, wo) = B_{kj}(wo, wi)``,
+  a different column). Label ``max(p, r)``; columns sorted by label, then ``j``, then
+  ``k`` (nested).
+* ``gautron_hsh_isotropic``: the isotropic subspace of ``gautron_hsh``. Averaging
+  :math:`H_p^q(\omega_i)H_r^s(\omega_o)` over a common rotation about the normal keeps
+  only :math:`|q| = |s|`, and the surviving combinations are
+
+  .. math::
+      C_{pr}^q = \Theta_p^q(\theta_i)\Theta_r^q(\theta_o)\,\Phi_q(\Delta\phi)\quad (q \ge 0),\qquad
+      S_{pr}^q = \Theta_p^q(\theta_i)\Theta_r^q(\theta_o)\,\sqrt2\sin(q\,\Delta\phi)\quad (q \ge 1),
+
+  for all ordered ``p, r >= q`` (``Delta phi = phi_o - phi_i``). ``C`` is
+  :math:`(B^{qq} + B^{-q,-q})/\sqrt2` and ``S`` is :math:`(B^{q,-q} - B^{-q,q})/\sqrt2`
+  up to the sign convention of :math:`\Phi_{-q}`. The sine terms are needed for
+  completeness on the isotropic subspace (isotropic functions that are odd in
+  :math:`\Delta\phi`); a BRDF with bilateral symmetry (even in
+  :math:`\Delta\phi`, every isotropic analytic model here) has zero coefficients on
+  them, so they never change Acc(P) for such BRDFs. Count up to P:
+  :math:`\sum_{q=0}^P (P+1-q)^2 + \sum_{q=1}^P (P+1-q)^2`. Columns sorted by
+  label ``max(p, r)``, then ``p, r``, then cosine terms by ``q`` before sine terms.
+
+Example:
+    >>> from torch_hsh.bases import get_basis
+    >>> get_basis("gautron_hsh").num_functions(2), get_basis("gautron_hsh_isotropic").num_functions(1)
+    (81, 6)
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import torch
+
+from ..basis import _const, _hsh_flat, _polar_consts, _polar_table, _safe_s
+from ._base import Basis, register_basis
+from .westin import MAX_PRODUCT_ORDER, broadcast_pair, complex_powers, pair_table, unit_dirs
+
+__all__ = ["GautronHSH", "GautronHSHIsotropic"]
+
+
+@lru_cache(maxsize=None)
+def _hsh_labels(order: int):
+    return tuple(int(math.isqrt(k)) for k in range((order + 1) ** 2))
+
+
+class GautronHSH(Basis):
+    """Plain products of HSH, ``gautron_hsh`` (not reciprocal).
+
+    ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., (P+1)**4)``; zero where a
+    direction is below the horizon or zero.
+
+    Example:
+        >>> import torch
+        >>> from torch_hsh.bases import get_basis
+        >>> w = torch.tensor([[0.0, 0.6, 0.8]])
+        >>> get_basis("gautron_hsh").evaluate(w, w, 1).shape
+        torch.Size([1, 16])
+    """
+
+    name = "gautron_hsh"
+    isotropic = False
+    reciprocal = False
+    domain = "hemisphere"
+    max_order = MAX_PRODUCT_ORDER
+
+    def evaluate(self, wi, wo, order):
+        lead, wi, wo = broadcast_pair(wi, wo)
+        order = self.check_order(order)
+        Hi = _hsh_flat(wi, order)
+        Ho = _hsh_flat(wo, order)
+        j, k, _, _ = pair_table(_hsh_labels(order), order, False)
+        dev = Hi.device
+        out = Hi.index_select(-1, _const(("gau_j", order), j, dev, None)) * Ho.index_select(
+            -1, _const(("gau_k", order), k, dev, None)
+        )
+        return out.reshape(*lead, out.shape[-1])
+
+    def num_functions(self, order):
+        return (self.check_order(order) + 1) ** 4
+
+    def function_orders(self, order):
+        order = self.check_order(order)
+        return torch.tensor(pair_table(_hsh_labels(order), order, False)[3], dtype=torch.long)
+
+
+@lru_cache(maxsize=None)
+def _gautron_iso_rows(order: int):
+    """Rows ``(label, p, r, q, kind)``, kind 0 = cosine, 1 = sine; sorted (nested by label)."""
+    rows = []
+    for p in range(order + 1):
+        for r in range(order + 1):
+            for q in range(min(p, r) + 1):
+                rows.append((max(p, r), p, r, q, 0))
+                if q >= 1:
+                    rows.append((max(p, r), p, r, q, 1))
+    rows.sort(key=lambda t: (t[0], t[1], t[2], t[4], t[3]))
+    return tuple(rows)
+
+
+def gautron_isotropic_indices(order: int) -> torch.Tensor:
+    """LongTensor ``(K, 4)`` of rows ``(p, r, q, kind)`` of ``gautron_hsh_isotropic`` (kind 0 = cos, 1 = sin).
+
+    Example:
+        >>> gautron_isotropic_indices(1).tolist()
+        [[0, 0, 0, 0], [0, 1, 0, 0], [1, 0, 0, 0], [1, 1, 0, 0], [1, 1, 1, 0], [1, 1, 1, 1]]
+    """
+    from .._checks import check_order
+
+    order = check_order(order, max_order=40)
+    return torch.tensor([r[1:] for r in _gautron_iso_rows(order)], dtype=torch.long).reshape(-1, 4)
+
+
+class GautronHSHIsotropic(Basis):
+    """Isotropic subspace of the HSH product basis, ``gautron_hsh_isotropic`` (not reciprocal).
+
+    ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., K)`` with rows as
+    :func:`gautron_isotropic_indices`.
+
+    Example:
+        >>> from torch_hsh.bases import get_basis
+        >>> get_basis("gautron_hsh_isotropic").num_functions(2)
+        19
+    """
+
+    name = "gautron_hsh_isotropic"
+    isotropic = True
+    reciprocal = False
+    domain = "hemisphere"
+    max_order = 40
+
+    def evaluate(self, wi, wo, order):
+        lead, wi, wo = broadcast_pair(wi, wo)
+        order = self.check_order(order)
+        xi, yi, zi, oki = unit_dirs(wi)
+        xo, yo, zo, oko = unit_dirs(wo)
+        valid = oki & oko & (zi >= 0) & (zo >= 0)
+        zi_c, zo_c = zi.clamp(min=0.0), zo.clamp(min=0.0)
+        Ti = _polar_table(zi_c, order)
+        To = _polar_table(zo_c, order)
+        sio = _safe_s(zi_c) * _safe_s(zo_c)
+        # (s_i s_o)^q c^q, c = (x_i - i y_i)(x_o + i y_o): magnitude (sin_i sin_o)^q, phase q dphi
+        RE, IM = complex_powers(sio * (xi * xo + yi * yo), sio * (xi * yo - yi * xo), order)
+        AZ = torch.cat([RE, IM], dim=-1) * valid.to(zi.dtype).unsqueeze(-1)
+        _, _, _, col = _polar_consts(order)
+        rows = _gautron_iso_rows(order)
+        dev, dt = Ti.device, Ti.dtype
+        ia = _const(("gi_a", order), [col[(p, q)] for _, p, r, q, kd in rows], dev, None)
+        ib = _const(("gi_b", order), [col[(r, q)] for _, p, r, q, kd in rows], dev, None)
+        az = _const(("gi_z", order), [q if kd == 0 else order + q for _, p, r, q, kd in rows], dev, None)
+        c = _const(("gi_c", order), [1.0 if q == 0 else math.sqrt(2.0) for _, p, r, q, kd in rows], dev, dt)
+        out = Ti.index_select(-1, ia) * To.index_select(-1, ib) * AZ.index_select(-1, az) * c
+        return out.reshape(*lead, out.shape[-1])
+
+    def num_functions(self, order):
+        return len(_gautron_iso_rows(self.check_order(order)))
+
+    def function_orders(self, order):
+        return torch.tensor([r[0] for r in _gautron_iso_rows(self.check_order(order))], dtype=torch.long)
+
+
+register_basis(GautronHSH())
+register_basis(GautronHSHIsotropic())
