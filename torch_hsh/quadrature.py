@@ -32,6 +32,7 @@ the :math:`1/\cos\theta_i` of the Torrance--Sparrow model, give finite sums.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import Optional, Tuple
 
 import numpy as np
@@ -69,6 +70,15 @@ def _check_dtype(dtype) -> torch.dtype:
     return dtype
 
 
+@lru_cache(maxsize=64)
+def _leggauss(n: int):
+    """Cached float64 nodes/weights on [-1, 1] (numpy's eigenvalue method is O(n^3))."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    x.setflags(write=False)
+    w.setflags(write=False)
+    return x, w
+
+
 def gauss_legendre(
     n: int,
     a: float = -1.0,
@@ -98,7 +108,7 @@ def gauss_legendre(
     dtype = _check_dtype(dtype)
     if not (math.isfinite(a) and math.isfinite(b) and a < b):
         raise ValueError(f"need finite a < b, got a={a}, b={b}")
-    x, w = np.polynomial.legendre.leggauss(n)
+    x, w = _leggauss(n)
     x = 0.5 * (b - a) * x + 0.5 * (b + a)
     w = 0.5 * (b - a) * w
     return (
