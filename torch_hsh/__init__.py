@@ -36,3 +36,6 @@ from .fitting import (
 from .spectra import lambertian_spectrum, mirror_spectrum, mirror_spectrum_printed
 from . import brdf  # noqa: E402,F401  (analytic BRDF models: torch_hsh.brdf.get_model)
 from . import scenes  # noqa: E402,F401  (synthetic photometric-stereo scenes: torch_hsh.scenes)
+from . import render  # noqa: E402,F401  (differentiable photometric-stereo image formation)
+from . import ps  # noqa: E402,F401  (photometric-stereo solvers: ps.solve_hsh, ps.robust_lambertian, ...)
+from .ps import solve_hsh  # noqa: E402,F401

@@ -1,0 +1,397 @@
+r"""Differentiable, batched image formation for photometric stereo.
+
+Image formation (math notes, section 7): an orthographic camera looks down
+``-z``, so the view direction toward the camera is ``v = (0, 0, 1)`` for every
+pixel; lights are distant, with direction ``l_j`` (unit, world frame) and RGB
+intensity ``e_j``; each pixel has a unit normal ``n`` and its own BRDF ``f``:
+
+.. math::
+    I_{jc} = e_{jc}\, f_c(l_j', v')\, \max(0, n \cdot l_j)\; V_j,
+
+where ``'`` marks the local frame of ``n`` and ``V_j`` is an optional
+visibility (cast-shadow) mask. Attached shadows (``n . l <= 0``) are always
+applied; the isotropic basis itself is zero there too.
+
+A BRDF is either
+
+* a tensor of **coefficient maps** in the isotropic Helmholtz basis
+  (:func:`torch_hsh.helmholtz_isotropic_world`), shape ``(*S, C, K)`` with
+  ``S`` the pixel shape (``(H, W)`` or ``(P,)``) and ``K = (P+1)(P+2)(P+3)/6``
+  (the order is inferred from ``K``), or
+* a **callable** ``f(wi, wo) -> (..., C)`` taking local directions (for
+  example an analytic model of :mod:`torch_hsh.brdf` with per-pixel
+  parameters of shape ``(*S, C)``); it is called with ``wi`` of shape
+  ``(L, *S, 3)`` and ``wo`` of shape ``(L, *S, 3)``.
+
+Sensor effects (all optional, applied in this order by :func:`render`):
+Gaussian read noise plus signal-dependent shot noise (seeded), saturation
+clipping and quantisation to ``bits`` bits. Noise is additive, hence
+differentiable; clipping has zero gradient beyond the clip level and
+quantisation uses a straight-through estimator (gradient of the identity).
+
+Shapes everywhere: lights ``(L, 3)``; intensities ``None`` (all ones),
+``(L,)`` or ``(L, C)``; images ``(L, *S, C)``.
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional, Union
+
+import torch
+
+from ._checks import check_dirs, check_order, check_same, check_tensor
+from .basis import helmholtz_isotropic_world, num_isotropic
+from .frames import local_frame
+
+__all__ = [
+    "VIEW",
+    "view_direction",
+    "shading_basis",
+    "render",
+    "render_coefficients",
+    "render_model",
+    "add_sensor_noise",
+    "quantize",
+    "order_from_num_coefficients",
+]
+
+#: Direction toward the orthographic camera in the DiLiGenT frame (x right, y up, z toward the camera).
+VIEW = (0.0, 0.0, 1.0)
+
+
+def view_direction(like: torch.Tensor) -> torch.Tensor:
+    """The view direction ``(0, 0, 1)`` as a ``(3,)`` tensor with ``like``'s dtype and device.
+
+    Example:
+        >>> view_direction(torch.zeros(2, dtype=torch.float64))
+        tensor([0., 0., 1.], dtype=torch.float64)
+    """
+    return torch.tensor(VIEW, dtype=like.dtype, device=like.device)
+
+
+def order_from_num_coefficients(k: int) -> int:
+    """Order ``P`` with ``num_isotropic(P) == k``; ``ValueError`` if there is none.
+
+    Example:
+        >>> order_from_num_coefficients(20)
+        3
+    """
+    for p in range(0, 41):
+        n = num_isotropic(p)
+        if n == k:
+            return p
+        if n > k:
+            break
+    raise ValueError(
+        f"the last axis of the coefficient maps has {k} entries, which is not the size of an isotropic "
+        "Helmholtz basis (1, 4, 10, 20, 35, 56, ... = (P+1)(P+2)(P+3)/6)"
+    )
+
+
+def _check_lights(lights: torch.Tensor, name: str = "lights") -> torch.Tensor:
+    check_dirs(lights, name)
+    if lights.dim() != 2:
+        raise ValueError(f"`{name}` must have shape (L, 3), got {tuple(lights.shape)}")
+    if lights.shape[0] < 1:
+        raise ValueError(f"`{name}` must hold at least one light, got shape {tuple(lights.shape)}")
+    return lights
+
+
+def _intensities(intensities, L: int, C: int, like: torch.Tensor) -> torch.Tensor:
+    """Return ``(L, C)`` intensities on ``like``'s device/dtype."""
+    if intensities is None:
+        return torch.ones(L, C, dtype=like.dtype, device=like.device)
+    check_tensor(intensities, "intensities")
+    if intensities.dim() == 1:
+        intensities = intensities.unsqueeze(-1)
+    if intensities.dim() != 2 or intensities.shape[0] != L or intensities.shape[1] not in (1, C):
+        raise ValueError(
+            f"`intensities` must have shape (L,) or (L, C) = ({L},) or ({L}, {C}), got {tuple(intensities.shape)}"
+        )
+    return intensities.to(like.dtype).expand(L, C)
+
+
+def shading_basis(
+    normals: torch.Tensor,
+    lights: torch.Tensor,
+    order: int,
+    view: Optional[torch.Tensor] = None,
+) -> torch.Tensor:
+    r"""Design matrix of the linear image model: :math:`B_k(l_j, v, n) \max(0, n\cdot l_j)`.
+
+    With coefficients ``a`` of shape ``(*S, C, K)`` the rendered image is
+    ``I[j, ..., c] = e[j, c] * sum_k a[..., c, k] * shading_basis(...)[j, ..., k]``.
+
+    Args:
+        normals: ``(*S, 3)`` normals (normalised here), world frame.
+        lights: ``(L, 3)`` light directions toward the light, world frame.
+        order: basis order ``P``.
+        view: optional ``(3,)`` or ``(*S, 3)`` direction toward the camera;
+            default ``(0, 0, 1)``.
+
+    Returns:
+        ``(L, *S, K)``; zero where ``n . l <= 0`` or ``n . v < 0``. Differentiable
+        with respect to ``normals`` and ``lights``.
+
+    Example:
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> shading_basis(n, torch.tensor([[0.0, 0.6, 0.8]]), 2).shape
+        torch.Size([1, 1, 10])
+    """
+    check_dirs(normals, "normals")
+    _check_lights(lights)
+    check_same([("normals", normals), ("lights", lights)])
+    order = check_order(order)
+    S = normals.shape[:-1]
+    if view is None:
+        view = view_direction(normals)
+    else:
+        check_dirs(view, "view")
+        check_same([("normals", normals), ("view", view)])
+    nrm = torch.nn.functional.normalize(normals, dim=-1)
+    L = lights.shape[0]
+    li = lights.reshape(L, *([1] * len(S)), 3)
+    B = helmholtz_isotropic_world(li, view, nrm, order)  # (L, *S, K)
+    cos = (nrm * li).sum(-1).clamp(min=0.0)
+    return B * cos.unsqueeze(-1)
+
+
+def render_coefficients(
+    normals: torch.Tensor,
+    lights: torch.Tensor,
+    coefficients: torch.Tensor,
+    intensities: Optional[torch.Tensor] = None,
+    view: Optional[torch.Tensor] = None,
+) -> torch.Tensor:
+    """Noise-free rendering of per-pixel isotropic Helmholtz coefficient maps.
+
+    Args:
+        normals: ``(*S, 3)``.
+        lights: ``(L, 3)``.
+        coefficients: ``(*S, C, K)``; the order is inferred from ``K``.
+        intensities: ``None``, ``(L,)`` or ``(L, C)``.
+        view: optional direction toward the camera (default ``(0, 0, 1)``).
+
+    Returns:
+        ``(L, *S, C)`` radiance (not clamped: a fitted expansion may be negative).
+
+    Example:
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> a = torch.zeros(1, 3, 4); a[..., 0] = 2.0  # Lambertian, albedo 1
+        >>> render_coefficients(n, torch.tensor([[0.0, 0.0, 1.0]]), a)[0, 0]  # 1/pi
+        tensor([0.3183, 0.3183, 0.3183])
+    """
+    check_tensor(coefficients, "coefficients", min_dims=2)
+    check_dirs(normals, "normals")
+    S = normals.shape[:-1]
+    if coefficients.shape[:-2] != S:
+        raise ValueError(
+            f"`coefficients` must have shape (*S, C, K) with S = {tuple(S)} (the pixel shape of `normals`), "
+            f"got {tuple(coefficients.shape)}"
+        )
+    check_same([("normals", normals), ("coefficients", coefficients)])
+    order = order_from_num_coefficients(coefficients.shape[-1])
+    Phi = shading_basis(normals, lights, order, view)  # (L, *S, K)
+    img = torch.einsum("l...k,...ck->l...c", Phi, coefficients)
+    e = _intensities(intensities, lights.shape[0], coefficients.shape[-2], img)
+    return img * e.reshape(e.shape[0], *([1] * len(S)), e.shape[1])
+
+
+def render_model(
+    normals: torch.Tensor,
+    lights: torch.Tensor,
+    model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    intensities: Optional[torch.Tensor] = None,
+    view: Optional[torch.Tensor] = None,
+) -> torch.Tensor:
+    """Noise-free rendering of a BRDF callable with per-pixel parameters.
+
+    Args:
+        normals: ``(*S, 3)``.
+        lights: ``(L, 3)``.
+        model: ``f(wi, wo) -> (L, *S, C)`` with local directions ``(L, *S, 3)``
+            (z = normal); e.g. ``torch_hsh.brdf.CookTorranceGGX(albedo, ...)``
+            with parameters of shape ``(*S, C)``.
+        intensities: ``None``, ``(L,)`` or ``(L, C)``.
+        view: optional direction toward the camera (default ``(0, 0, 1)``).
+
+    Returns:
+        ``(L, *S, C)`` radiance ``e f max(0, n.l)``.
+
+    Example:
+        >>> lam = lambda wi, wo: torch.full(wi.shape[:-1] + (3,), 1 / torch.pi)
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> render_model(n, torch.tensor([[0.0, 0.0, 1.0]]), lam)[0, 0]
+        tensor([0.3183, 0.3183, 0.3183])
+    """
+    check_dirs(normals, "normals")
+    _check_lights(lights)
+    check_same([("normals", normals), ("lights", lights)])
+    if not callable(model):
+        raise TypeError(f"`model` must be callable f(wi, wo) -> (..., C), got {type(model).__name__}")
+    S = normals.shape[:-1]
+    L = lights.shape[0]
+    if view is None:
+        view = view_direction(normals)
+    R = local_frame(normals)  # (*S, 3, 3), rows t, b, n
+    wi = torch.einsum("...ab,lb->l...a", R, lights)  # (L, *S, 3)
+    wo = torch.einsum("...ab,...b->...a", R, view.expand(*S, 3))
+    wo = wo.unsqueeze(0).expand(L, *S, 3)
+    f = model(wi, wo)
+    if not isinstance(f, torch.Tensor) or f.shape[: 1 + len(S)] != (L, *S) or f.dim() != len(S) + 2:
+        got = tuple(f.shape) if isinstance(f, torch.Tensor) else type(f).__name__
+        raise ValueError(f"`model(wi, wo)` must return shape (L, *S, C) = ({L}, {', '.join(map(str, S))}, C), got {got}")
+    cos = wi[..., 2].clamp(min=0.0)
+    up = (wo[..., 2] >= 0) & (wi[..., 2] > 0)
+    img = torch.where(up.unsqueeze(-1), f * cos.unsqueeze(-1), torch.zeros_like(f))
+    e = _intensities(intensities, L, img.shape[-1], img)
+    return img * e.reshape(L, *([1] * len(S)), e.shape[1])
+
+
+def add_sensor_noise(
+    images: torch.Tensor,
+    read_std: float = 0.0,
+    shot_gain: float = 0.0,
+    seed: Optional[int] = None,
+) -> torch.Tensor:
+    r"""Gaussian read noise plus (Gaussian-approximated) shot noise, seeded.
+
+    ``out = I + sqrt(read_std**2 + shot_gain * max(I, 0)) * N(0, 1)``: the
+    variance of shot noise grows linearly with the signal (Poisson with
+    ``1 / shot_gain`` photo-electrons per unit of radiance).
+
+    Args:
+        images: any shape.
+        read_std: standard deviation of the signal-independent noise (>= 0).
+        shot_gain: variance per unit signal (>= 0).
+        seed: seed of a private generator on ``images.device`` (``None``:
+            the global generator).
+
+    Returns:
+        Noisy images, same shape; differentiable with respect to ``images``.
+
+    Example:
+        >>> x = torch.ones(4)
+        >>> torch.equal(add_sensor_noise(x, 0.1, seed=1), add_sensor_noise(x, 0.1, seed=1))
+        True
+    """
+    check_tensor(images, "images")
+    if read_std < 0 or shot_gain < 0:
+        raise ValueError(f"`read_std` and `shot_gain` must be >= 0, got {read_std} and {shot_gain}")
+    if read_std == 0 and shot_gain == 0:
+        return images
+    gen = None
+    if seed is not None:
+        gen = torch.Generator(device=images.device)
+        gen.manual_seed(int(seed))
+    z = torch.randn(images.shape, generator=gen, dtype=images.dtype, device=images.device)
+    var = read_std ** 2 + shot_gain * images.clamp(min=0.0)
+    return images + torch.sqrt(var) * z
+
+
+def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> torch.Tensor:
+    """Clip to ``[0, max_value]`` and quantise to ``2**bits - 1`` levels (straight-through gradient).
+
+    Args:
+        images: any shape.
+        bits: 1..32.
+        max_value: the value mapped to the largest code (the saturation level).
+
+    Returns:
+        Quantised images in the same units as the input.
+
+    Example:
+        >>> quantize(torch.tensor([0.5, 2.0]), bits=1)
+        tensor([1., 1.])
+    """
+    check_tensor(images, "images")
+    if isinstance(bits, bool) or int(bits) != bits or not 1 <= bits <= 32:
+        raise ValueError(f"`bits` must be an integer in [1, 32], got {bits!r}")
+    if not max_value > 0:
+        raise ValueError(f"`max_value` must be > 0, got {max_value}")
+    levels = float(2 ** int(bits) - 1)
+    x = images.clamp(0.0, max_value)
+    q = torch.round(x / max_value * levels) * (max_value / levels)
+    return x + (q - x).detach()
+
+
+def render(
+    normals: torch.Tensor,
+    lights: torch.Tensor,
+    brdf: Union[torch.Tensor, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]],
+    intensities: Optional[torch.Tensor] = None,
+    visibility: Optional[torch.Tensor] = None,
+    view: Optional[torch.Tensor] = None,
+    read_noise: float = 0.0,
+    shot_noise: float = 0.0,
+    seed: Optional[int] = None,
+    saturation: Optional[float] = None,
+    bits: Optional[int] = None,
+    mask: Optional[torch.Tensor] = None,
+) -> torch.Tensor:
+    r"""Render photometric-stereo images (section 7 of the math notes).
+
+    Args:
+        normals: ``(*S, 3)`` per-pixel normals, world frame (DiLiGenT frame:
+            x right, y up, z toward the camera); ``S`` is ``(H, W)`` or ``(P,)``.
+        lights: ``(L, 3)`` unit directions toward the lights.
+        brdf: coefficient maps ``(*S, C, K)`` in the isotropic Helmholtz basis,
+            or a callable ``f(wi, wo) -> (L, *S, C)`` on local directions
+            (an analytic model of :mod:`torch_hsh.brdf` with per-pixel parameters).
+        intensities: ``None`` (ones), ``(L,)`` or ``(L, C)`` light intensities.
+        visibility: optional ``(L, *S)`` cast-shadow mask (bool or float in [0, 1]).
+        view: optional direction toward the camera (default ``(0, 0, 1)``).
+        read_noise: std of additive Gaussian noise.
+        shot_noise: variance per unit signal of the shot noise.
+        seed: noise seed (reproducible results).
+        saturation: clip radiance at this level (also the full-scale value for
+            quantisation); ``None``: no clipping (quantisation then uses the
+            maximum of the rendered images as full scale).
+        bits: quantise to this many bits (e.g. 16), after clipping.
+        mask: optional ``(*S)`` bool; pixels outside are set to zero.
+
+    Returns:
+        ``(L, *S, C)`` images. Negative radiance from a coefficient expansion is
+        clamped to zero (a camera cannot measure it); the clamp is applied
+        before the noise.
+
+    Example:
+        >>> n = torch.nn.functional.normalize(torch.randn(5, 3).abs(), dim=-1)
+        >>> a = torch.zeros(5, 3, 10); a[..., 0] = 1.0
+        >>> render(n, torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), a, read_noise=0.01, seed=0).shape
+        torch.Size([2, 5, 3])
+    """
+    check_dirs(normals, "normals")
+    lights = _check_lights(lights)
+    check_same([("normals", normals), ("lights", lights)])
+    if isinstance(brdf, torch.Tensor):
+        img = render_coefficients(normals, lights, brdf, intensities, view).clamp(min=0.0)
+    elif callable(brdf):
+        img = render_model(normals, lights, brdf, intensities, view)
+    else:
+        raise TypeError(
+            f"`brdf` must be coefficient maps (a tensor of shape (*S, C, K)) or a callable f(wi, wo), "
+            f"got {type(brdf).__name__}"
+        )
+    S = normals.shape[:-1]
+    if visibility is not None:
+        if not isinstance(visibility, torch.Tensor):
+            raise TypeError(f"`visibility` must be a torch.Tensor, got {type(visibility).__name__}")
+        if tuple(visibility.shape) != (lights.shape[0], *S):
+            raise ValueError(
+                f"`visibility` must have shape (L, *S) = {(lights.shape[0], *S)}, got {tuple(visibility.shape)}"
+            )
+        img = img * visibility.to(img.dtype).unsqueeze(-1)
+    img = add_sensor_noise(img, read_noise, shot_noise, seed)
+    if saturation is not None:
+        if not saturation > 0:
+            raise ValueError(f"`saturation` must be > 0, got {saturation}")
+    if bits is not None:
+        full = float(saturation) if saturation is not None else float(img.detach().max().clamp(min=1e-30))
+        img = quantize(img, bits, full)
+    elif saturation is not None:
+        img = img.clamp(max=float(saturation))
+    if mask is not None:
+        if not isinstance(mask, torch.Tensor) or tuple(mask.shape) != tuple(S):
+            raise ValueError(f"`mask` must be a tensor of shape {tuple(S)}, got {getattr(mask, 'shape', mask)!r}")
+        img = img * mask.to(img.dtype).unsqueeze(-1)
+    return img
