@@ -1,7 +1,8 @@
 """Basis interface and registry."""
 from __future__ import annotations
 
-from typing import Callable, Dict, List, Optional
+from abc import ABC, abstractmethod
+from typing import Dict, List, Optional
 
 import torch
 
@@ -10,7 +11,7 @@ from .._checks import check_order
 _REGISTRY: Dict[str, "Basis"] = {}
 
 
-class Basis:
+class Basis(ABC):
     """A BRDF basis on (a subset of) the product of two (hemi)spheres.
 
     Attributes:
@@ -40,17 +41,18 @@ class Basis:
         except ValueError as e:
             raise ValueError(f"basis '{self.name}': {e}") from None
 
+    @abstractmethod
     def evaluate(self, wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
         """``(..., 3), (..., 3) -> (..., K)`` basis values in the local frame."""
-        raise NotImplementedError
 
     def __call__(self, wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
         return self.evaluate(wi, wo, order)
 
+    @abstractmethod
     def num_functions(self, order: int) -> int:
         """Number of functions up to ``order``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def function_orders(self, order: int) -> torch.Tensor:
         """LongTensor ``(K,)``: the smallest truncation order that contains each function.
 
@@ -58,7 +60,6 @@ class Basis:
         ``num_functions(P)`` columns of ``evaluate(..., order)`` for any
         ``order >= P`` are the basis up to P (bases are nested).
         """
-        raise NotImplementedError
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"
