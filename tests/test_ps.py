@@ -57,11 +57,41 @@ def test_hsh_exact_recovery_from_basis_data():
     assert float(img.min()) >= 0  # inside the model: render() clamps nothing here
     t1 = torch.nn.functional.normalize(torch.cross(n, torch.tensor([[1.0, 0.0, 0.0]], dtype=DT).expand_as(n), dim=-1), dim=-1)
     start = torch.nn.functional.normalize(n + math.tan(math.radians(6)) * t1, dim=-1)
-    res = ps.solve_hsh(img, l, order=2, ridge=1e-10, init=start, robust=False, search_angles=(), max_iter=30,
-                       nonneg=False)
+    res = ps.solve_hsh(img, l, order=2, materials=None, ridge=1e-10, init=start, robust=False, search_angles=(),
+                       max_iter=30, nonneg=False)
     assert _mean_err(res.normals, n) < 1e-3
     relit = res.relight(l, clamp=False)
     assert torch.allclose(relit, img, atol=1e-7 * float(img.max()))
+
+
+def test_hsh_shared_materials_exact_recovery():
+    """Noise-free data from two shared basis BRDFs with per-pixel RGB mixing.
+
+    The alternating calibration converges slowly along the joint (normals, basis)
+    valley, so recovery is close but not exact: the 5 degree start error must
+    shrink at least five-fold and the images must be reproduced.
+    """
+    n, l = _scene(60, 40, 12)
+    g = torch.Generator().manual_seed(13)
+    B = torch.zeros(2, 20, dtype=DT)
+    B[0, 0] = 1.0
+    B[0, 1:] = 0.01 * torch.randn(19, generator=g, dtype=DT)
+    B[1, 0] = 0.5
+    B[1, 1:] = 0.03 * torch.randn(19, generator=g, dtype=DT)
+    mix = torch.rand(60, 3, 2, generator=g, dtype=DT) + torch.tensor([0.5, 0.0], dtype=DT)
+    img = render_coefficients(n, l, mix @ B)
+    assert float(img.min()) >= 0
+    t1 = torch.nn.functional.normalize(torch.cross(n, torch.tensor([[1.0, 0.0, 0.0]], dtype=DT).expand_as(n), dim=-1), dim=-1)
+    start = torch.nn.functional.normalize(n + math.tan(math.radians(5)) * t1, dim=-1)
+    res = ps.solve_hsh(img, l, order=3, materials=2, init=start, work_dtype=torch.float64, max_iter=40,
+                       search_angles=(), nonneg=False, ridge=1e-8)
+    assert _mean_err(res.normals, n) < 1.0
+    assert res.basis_brdfs.shape == (2, 20) and res.mixing.shape == (60, 3, 2)
+    # the recovered basis spans the true one
+    Q, _ = torch.linalg.qr(res.basis_brdfs.T)
+    assert float((B.T - Q @ (Q.T @ B.T)).norm() / B.norm()) < 0.25
+    relit = res.relight(l, clamp=False)
+    assert float((relit - img).abs().max()) < 2e-2 * float(img.max())
 
 
 def test_hsh_beats_lambertian_on_specular_scene():
@@ -129,7 +159,7 @@ def test_image_layout_mask_and_chunks():
     r2 = ps.solve_hsh(img, l, mask=mask, chunk_size=1000, max_iter=5, search_angles=())
     assert r1.normals.shape == (6, 8, 3) and torch.all(r1.normals[0] == 0)
     assert torch.allclose(r1.normals, r2.normals, atol=1e-9)
-    assert _mean_err(r1.normals[mask], n.reshape(6, 8, 3)[mask]) < 0.05
+    assert _mean_err(r1.normals[mask], n.reshape(6, 8, 3)[mask]) < 0.1  # float32 work dtype
 
 
 def test_saturation_and_dark_observations_are_dropped():
@@ -164,3 +194,29 @@ def test_bad_inputs_give_clear_errors():
         ps.robust_lambertian(img, l, drop_dark=0.7, drop_bright=0.5)
     with pytest.raises(TypeError, match="order"):
         ps.solve_hsh(img, l, order=2.5)
+
+
+@pytest.mark.parametrize("order", [0, 1, 2, 3, 5])
+def test_mixed_design_matches_factorised_design(order):
+    """Horner evaluation of Psi = Phi B^T equals the explicit design (incl. below-horizon normals)."""
+    from torch_hsh.basis import num_isotropic
+    from torch_hsh.ps._mixture import MixedDesign
+    from torch_hsh.ps.hsh import _design_factors
+
+    g = torch.Generator().manual_seed(order)
+    n = torch.nn.functional.normalize(torch.randn(200, 3, generator=g, dtype=DT) + torch.tensor([0.0, 0.0, 1.2], dtype=DT), dim=-1)
+    n[:4, 2] = -0.2
+    l = torch.nn.functional.normalize(torch.randn(30, 3, generator=g, dtype=DT) + torch.tensor([0.0, 0.0, 1.0], dtype=DT), dim=-1)
+    B = torch.randn(3, num_isotropic(order), generator=g, dtype=DT)
+    X, T = _design_factors(n, l, order)
+    ref = X @ T @ B.T
+    got = MixedDesign(B, l, order)(n)
+    assert torch.allclose(got, ref, atol=1e-12 * float(ref.abs().max()) + 1e-14)
+
+
+def test_materials_argument_is_validated():
+    n, l = _scene(10, 12, 9)
+    img = render(n, l, Lambertian(torch.full((10, 3), 0.5, dtype=DT)))
+    for bad in (0, 9, 1.5, True):
+        with pytest.raises(ValueError, match="materials"):
+            ps.solve_hsh(img, l, materials=bad)

@@ -59,12 +59,14 @@ from functools import lru_cache
 from ..basis import _iso_kernel, _polar_consts, _polar_table, _polar_table_t, _safe_s, isotropic_indices, num_isotropic
 from ..render import render_coefficients
 from ._common import angular_error, prepare_inputs, robust_sigma, scatter_pixels, tangent_frame
+from ._mixture import MixedDesign, _ridge_diag, lm_normals, reduced_cost, solve_weights
 from .lambertian import _solve_flat, trimmed_weights
 
 __all__ = [
     "HSHResult",
     "HoldoutResult",
     "DEFAULT_ORDER",
+    "DEFAULT_MATERIALS",
     "solve_hsh",
     "holdout_evaluation",
     "directional_albedo_view",
@@ -76,6 +78,11 @@ __all__ = [
 #: identifiable from one pixel, comfortably fewer than the 50-100 lights of a
 #: typical capture even after shadows and highlights are removed.
 DEFAULT_ORDER = 3
+
+#: Default number of shared basis BRDFs ("materials") of the shared model.
+#: Two cover the common dichromatic case (a coloured body reflection and a
+#: specular reflection with its own colour) with free RGB weights per pixel.
+DEFAULT_MATERIALS = 2
 
 
 @dataclass
@@ -94,6 +101,10 @@ class HSHResult:
         lights: ``(L, 3)`` lights used in the fit.
         runtime_s: wall time of the solve in seconds.
         info: diagnostics (noise estimate, saturation level, iteration counts, ...).
+        basis_brdfs: shared model only: ``(M, K)`` unit-norm basis BRDFs
+            (isotropic Helmholtz coefficients), else ``None``.
+        mixing: shared model only: ``(*S, C, M)`` per-pixel mixing weights
+            (``coefficients ~= mixing @ basis_brdfs``), else ``None``.
     """
 
     normals: torch.Tensor
@@ -106,6 +117,8 @@ class HSHResult:
     lights: torch.Tensor
     runtime_s: float
     info: Dict[str, float] = field(default_factory=dict)
+    basis_brdfs: Optional[torch.Tensor] = None
+    mixing: Optional[torch.Tensor] = None
 
     def relight(self, lights: torch.Tensor, intensities: Optional[torch.Tensor] = None, clamp: bool = True) -> torch.Tensor:
         """Render the fitted surface under new lights.
@@ -266,13 +279,15 @@ class _Chunk:
         s = torch.where(s > 0, s, torch.ones_like(s))
         self.ridge_diag = self.ridge * s.unsqueeze(-1) * self.profile  # (p, K)
 
-    def solve(self, Phi, w, ridge_diag, y, extra=None):
+    def solve(self, Phi, w, ridge_diag, y, extra=None, rhs_extra=None):
         Pw = Phi * w.unsqueeze(-1)
         G = Pw.transpose(1, 2) @ Phi
         if extra is not None:
             G = G + extra
         G = G + torch.diag_embed(ridge_diag)
         rhs = Pw.transpose(1, 2) @ y  # (p, K, C)
+        if rhs_extra is not None:
+            rhs = rhs + rhs_extra
         return torch.cholesky_solve(rhs, self._chol(G))  # (p, K, C)
 
     @staticmethod
@@ -519,9 +534,11 @@ def _robust_weights(ch: _Chunk, n, w0, sigma_floor, c: float = 2.385):
     return w0 / (1.0 + (res / (c * scale.unsqueeze(-1))) ** 2)
 
 
-def _final_coefficients(ch: _Chunk, n, nonneg: bool, gamma: float = 10.0, iters: int = 4, virtual: int = 48):
+def _final_coefficients(ch: _Chunk, n, nonneg: bool, prior=None, gamma: float = 10.0, iters: int = 4, virtual: int = 48):
+    """Per-pixel ridge coefficients ``(p, K, C)``, shrunk toward ``prior`` (default 0), with the non-negativity safeguard."""
     Phi = ch.design(n)
-    a = ch.solve(Phi, ch.w, ch.ridge_diag, ch.y)
+    a0 = torch.zeros(Phi.shape[0], Phi.shape[-1], ch.y.shape[-1], dtype=Phi.dtype, device=Phi.device) if prior is None else prior
+    a = a0 + ch.solve(Phi, ch.w, ch.ridge_diag, ch.y - Phi @ a0)
     if not nonneg:
         return a
     vdirs = _hemisphere_dirs(virtual, n.dtype, n.device)
@@ -537,8 +554,172 @@ def _final_coefficients(ch: _Chunk, n, nonneg: bool, gamma: float = 10.0, iters:
             break
         Wv = torch.where(neg, gamma * scale.expand_as(Wv), Wv)
         extra = (Pall * Wv.unsqueeze(-1)).transpose(1, 2) @ Pall
-        a = ch.solve(Phi, ch.w, ch.ridge_diag, ch.y, extra=extra)
+        # minimise |sqrt(w)(y - Phi a)|^2 + |sqrt(ridge)(a - a0)|^2 + |sqrt(Wv) Pall a|^2
+        a = a0 + ch.solve(Phi, ch.w, ch.ridge_diag, ch.y - Phi @ a0, extra=extra, rhs_extra=-(extra @ a0))
     return a
+
+
+# ---------------------------------------------------------------------------
+# Shared-material model (default): a_pc = sum_m W_pcm B_m
+# ---------------------------------------------------------------------------
+class _MixChunk(_Chunk):
+    """A :class:`_Chunk` whose design is the mixed design ``Psi = Phi B^T`` (``M`` columns)."""
+
+    def __init__(self, y, w, lights, order, B, ridge):
+        self.mixed = MixedDesign(B, lights, order)
+        super().__init__(y, w, lights, None, order, torch.ones(B.shape[0], dtype=y.dtype, device=y.device), ridge)
+
+    def design(self, n, lights=None):
+        return self.mixed(n, lights)
+
+
+def _initial_mixing(albedo: torch.Tensor, M: int, seed: int) -> torch.Tensor:
+    """Start mixing weights ``(p, C, M)``: per-channel albedo, its grey level, then seeded positive perturbations."""
+    cols = [albedo]
+    if M >= 2:
+        cols.append(albedo.mean(-1, keepdim=True).expand_as(albedo))
+    g = torch.Generator().manual_seed(int(seed))
+    for _ in range(2, M):
+        f = 0.5 + torch.rand(albedo.shape[0], 1, generator=g, dtype=torch.float64).to(albedo)
+        cols.append(albedo * f)
+    return torch.stack(cols, dim=-1)
+
+
+def _fit_basis_brdfs(Phi, w, y, W, order, ridge_rel):
+    """Shared basis BRDFs ``B (M, K)`` (unit rows) by weighted ridge LS over all pixels and channels."""
+    M, K = W.shape[-1], Phi.shape[-1]
+    Pw = Phi * w.unsqueeze(-1)
+    G = Pw.transpose(1, 2) @ Phi
+    A = torch.einsum("pcm,pcn,pkl->mknl", W, W, G).reshape(M * K, M * K)
+    r = torch.einsum("pcm,pkc->mk", W, Pw.transpose(1, 2) @ y).reshape(-1)
+    prof = _ridge_profile(order, y.dtype, y.device).repeat(M)
+    tr = A.diagonal().mean().clamp(min=1e-300)
+    A = A + torch.diag(ridge_rel * tr * prof)
+    B = torch.linalg.solve(A, r).reshape(M, K)
+    nb = B.norm(dim=-1, keepdim=True)
+    return B / torch.where(nb > 0, nb, torch.ones_like(nb))
+
+
+def _cauchy(res, w0, scale, c):
+    return w0 / (1.0 + (res / (c * scale)) ** 2)
+
+
+def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge=1e-3, weight_ridge=1e-4):
+    """Alternate (basis BRDFs, mixing weights, robust weights) and the normals on a pixel subset.
+
+    Returns ``B (M, K)``, the robust residual scale and the subset normals.
+    """
+    w = w0.clone()
+    scale = None
+    B = None
+    for _ in range(rounds):
+        X, T = _design_factors(n, lights, order)
+        Phi = X @ T
+        for _ in range(irls + 1):
+            B = _fit_basis_brdfs(Phi, w, y, W, order, basis_ridge)
+            Psi = Phi @ B.T
+            ch = _MixChunk(y, w0, lights, order, B, weight_ridge)
+            ch.set_ridge_scale(n)
+            Wt = ch.solve(Psi, w, ch.ridge_diag, y)  # (p, M, C)
+            W = Wt.transpose(1, 2)
+            res = (y - Psi @ Wt).pow(2).mean(-1).sqrt()
+            live = res[w0 > 0]
+            scale = float(1.4826 * live.median()) if live.numel() else 1.0
+            scale = max(scale, 1e-12)
+            w = _cauchy(res, w0, scale, c)
+        ch.set_weights(w)
+        n, _, _ = _lm(ch, n, lm_iter)
+    return B, scale, n
+
+
+def _independent_chunk(y, w0, n, lights, view, order, profile, ridge, robust, robust_iters, search_angles,
+                       search_azimuths, max_iter, sigma_y):
+    """Independent per-pixel model on one batch: returns normals, the :class:`_Chunk` and LM iterations."""
+    ch = _Chunk(y, w0, lights, view, order, profile, ridge)
+    n = n.clone()
+    ch.set_ridge_scale(n)
+    iters = 0
+    floor = None
+    if robust:
+        yscale = ch.y.mean(-1).abs().amax(-1)
+        floor = torch.maximum(torch.full_like(yscale, 3 * sigma_y), 1e-3 * yscale).clamp(min=1e-12)
+        # IRLS on the coefficients at the start normal: observations the basis
+        # cannot explain (sharp highlights, interreflections) lose their weight
+        # before the normal moves
+        for _ in range(robust_iters + 1):
+            ch.set_weights(_robust_weights(ch, n, w0, floor))
+    # coarse search over a cone of candidates
+    if len(search_angles) > 0 and search_azimuths > 0:
+        best = ch.cost(n)
+        for cand in _cone_candidates(n, search_angles, search_azimuths):
+            cc = ch.cost(cand)
+            better = cc < best
+            n = torch.where(better.unsqueeze(-1), cand, n)
+            best = torch.where(better, cc, best)
+    n, _, k = _lm(ch, n, max_iter)
+    iters += k
+    if robust:
+        for _ in range(robust_iters):
+            ch.set_weights(_robust_weights(ch, n, w0, floor))
+            n, _, k = _lm(ch, n, max_iter)
+            iters += k
+    return n, ch, iters
+
+
+def _refine_normals_mixed(B, y, w0, n, lights, order, scale, c, iters, irls, search_angles, search_azimuths, work_dtype,
+                          step_tol: float = 2e-4):
+    """Per-pixel IRLS + Levenberg–Marquardt on the normals with the basis BRDFs fixed.
+
+    Every iteration: ``irls`` Cauchy reweighting steps (mixing weights in
+    closed form at the current normal), then one LM step of the normal. A
+    pixel stops once its normal moves less than ``step_tol`` radians (after at
+    least three iterations), so results do not depend on the chunking.
+
+    Returns normals, robust weights, mixing weights ``(p, M, C)`` (in ``y``'s dtype) and the iterations used.
+    """
+    out_dt = y.dtype
+    des = MixedDesign(B.to(work_dtype), lights.to(work_dtype), order)
+    yd, w0d, nd = y.to(work_dtype), w0.to(work_dtype), n.to(work_dtype)
+    h = 1e-6 if work_dtype == torch.float64 else 3e-3
+    Psi = des(nd)
+    w = w0d.clone()
+
+    def reweight(Psi, w, yy, ww0):
+        for _ in range(irls):
+            rd = _ridge_diag(Psi, w, 1e-4)
+            Wt, _, _ = solve_weights(Psi, w, yy, rd)
+            res = (yy - Psi @ Wt).pow(2).mean(-1).sqrt()
+            w = _cauchy(res, ww0, scale, c)
+        return w
+
+    active = torch.ones(nd.shape[0], dtype=torch.bool, device=nd.device)
+    used = 0
+    for it in range(iters):
+        idx = active.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            break
+        used += 1
+        yi, ni, Pi = yd[idx], nd[idx], Psi[idx]
+        wi = reweight(Pi, w[idx], yi, w0d[idx])
+        rd = _ridge_diag(Pi, wi, 1e-4)
+        if it == 0 and len(search_angles) > 0 and search_azimuths > 0:
+            best, _ = reduced_cost(Pi, wi, yi, rd)
+            for cand in _cone_candidates(ni, search_angles, search_azimuths):
+                cc, _ = reduced_cost(des(cand), wi, yi, rd)
+                better = cc < best
+                ni = torch.where(better.unsqueeze(-1), cand, ni)
+                best = torch.where(better, cc, best)
+        n_new, _ = lm_normals(des, yi, wi, rd, ni, 1, h)
+        step = (n_new - nd[idx]).norm(dim=-1)
+        nd[idx] = n_new
+        Psi[idx] = des(n_new)
+        w[idx] = wi
+        if it >= 2:
+            active[idx[step < step_tol]] = False
+    w = reweight(Psi, w, yd, w0d)
+    rd = _ridge_diag(Psi, w, 1e-4)
+    Wt, _, _ = solve_weights(Psi, w, yd, rd)
+    return nd.to(out_dt), w.to(out_dt), Wt.to(out_dt), used
 
 
 # ---------------------------------------------------------------------------
@@ -550,6 +731,7 @@ def solve_hsh(
     intensities: Optional[torch.Tensor] = None,
     mask: Optional[torch.Tensor] = None,
     order: int = DEFAULT_ORDER,
+    materials: Optional[int] = DEFAULT_MATERIALS,
     init: Optional[torch.Tensor] = None,
     ridge: float = 0.1,
     search_angles: Sequence[float] = (8.0, 16.0),
@@ -557,15 +739,42 @@ def solve_hsh(
     max_iter: int = 15,
     robust: bool = True,
     robust_iters: int = 2,
+    calibration_pixels: int = 2048,
+    calibration_rounds: int = 8,
+    calibration_starts: Sequence[str] = ("lambertian", "independent"),
     dark_fraction: float = 0.05,
     noise_sigma: Optional[float] = None,
     saturation: Optional[float] = None,
     nonneg: bool = True,
-    chunk_size: int = 4096,
+    chunk_size: int = 8192,
     dtype: Optional[torch.dtype] = torch.float64,
+    work_dtype: Optional[torch.dtype] = torch.float32,
+    seed: int = 0,
     progress: bool = False,
 ) -> HSHResult:
-    r"""Photometric stereo with per-pixel isotropic Helmholtz HSH BRDFs.
+    r"""Photometric stereo with isotropic Helmholtz HSH BRDFs.
+
+    Two models (see ``docs/photometric_stereo.md``):
+
+    * ``materials=M`` (default ``M = 2``): **shared basis BRDFs**. The
+      coefficients of pixel ``p``, channel ``c`` are
+      :math:`a_{pc} = \sum_m W_{pcm} B_m + \delta_{pc}`: ``M`` basis BRDFs
+      ``B (M, K)`` shared by the whole object (Goldman et al. 2005; Alldrin
+      et al. 2008) with free per-pixel RGB mixing weights ``W``, plus a small
+      per-pixel residual ``delta`` (ridge-shrunk toward 0, fitted once the
+      normal is fixed). Sharing is what makes the normal's elevation
+      identifiable: with one viewpoint a BRDF free at every pixel only fixes
+      the normal's azimuth (Alldrin & Kriegman 2007). Steps: robust Lambertian
+      start; on a random subset of ``calibration_pixels`` pixels, alternate
+      Cauchy-IRLS fits of ``(B, W)`` with Levenberg–Marquardt on the normals
+      (``calibration_rounds`` rounds); then, with ``B`` fixed, every pixel
+      runs IRLS + variable-projection LM on its normal (the mixing weights
+      are linear, solved in closed form), with a coarse cone search at the
+      first iteration. The robust scale is estimated from the data.
+    * ``materials=None``: an **independent** BRDF per pixel (``K``
+      coefficients per channel, ridge growing with order), VP-LM from the
+      robust Lambertian start. Fits the data as closely, but the elevation of
+      the normal is then set by the ridge, not by the data.
 
     Args:
         images: ``(L, H, W, C)`` or ``(L, P, C)`` linear images (trailing channel axis).
@@ -573,26 +782,44 @@ def solve_hsh(
         intensities: ``None``, ``(L,)`` or ``(L, C)`` light intensities (images are divided by them).
         mask: ``(H, W)`` / ``(P,)`` bool object mask (default: every pixel).
         order: basis order ``P`` (default 3: ``K = 20`` coefficients per channel).
+        materials: number ``M`` of shared basis BRDFs (1..8), or ``None`` for
+            independent per-pixel BRDFs.
         init: optional ``(*S, 3)`` starting normals (default: robust Lambertian).
-        ridge: relative ridge strength ``lambda`` (see module docstring).
+        ridge: relative ridge strength ``lambda`` on the per-pixel coefficients
+            (independent model) or on the per-pixel residual ``delta``
+            (shared model); see the module docstring.
         search_angles: cone angles in degrees of the coarse candidate search
             (empty: no search).
         search_azimuths: candidates per cone angle.
-        max_iter: Levenberg–Marquardt iterations per stage.
-        robust: run Cauchy IRLS reweighting stages (``robust_iters`` of them).
-        robust_iters: number of reweighting stages.
+        max_iter: Levenberg–Marquardt iterations per stage (independent model)
+            or IRLS-LM iterations of the per-pixel pass (shared model).
+        robust: independent model only: run Cauchy IRLS stages (``robust_iters`` of them).
+        robust_iters: independent model only: number of reweighting stages.
+        calibration_pixels: shared model: size of the pixel subset used to fit ``B``.
+        calibration_rounds: shared model: alternation rounds on that subset.
+        calibration_starts: shared model: starts of the calibration, any of
+            ``"lambertian"`` (robust Lambertian normals, always used) and
+            ``"independent"`` (normals of the independent model on the subset);
+            the calibration with the smallest robust residual scale is kept.
         dark_fraction, noise_sigma, saturation: thresholds, see :func:`observation_weights`.
         nonneg: apply the non-negativity safeguard to the final coefficients.
-        chunk_size: pixels per batch (memory ~ ``chunk_size * L * K`` values, times ~6).
-        dtype: computation dtype (default float64; ``None``: the images' dtype).
+        chunk_size: pixels per batch of the per-pixel passes (bounded memory).
+        dtype: dtype of the outputs and of the coefficient fits (default
+            float64; ``None``: the images' dtype).
+        work_dtype: shared model: dtype of the per-pixel normal iterations
+            (default float32, about 3x faster than float64 with the same
+            accuracy; ``None``: ``dtype``).
+        seed: seed of the calibration subset.
         progress: show a tqdm progress bar over chunks.
 
     Returns:
-        :class:`HSHResult` (normals, coefficient maps, directional albedo, ...),
-        in ``dtype`` on the images' device.
+        :class:`HSHResult` (normals, coefficient maps, directional albedo,
+        and for the shared model the basis BRDFs and mixing weights), in
+        ``dtype`` on the images' device.
 
     Raises:
-        ValueError: shape mismatches, fewer than 3 lights, empty mask, bad order.
+        ValueError: shape mismatches, fewer than 3 lights, empty mask, bad
+            order or number of materials.
 
     Example:
         >>> res = solve_hsh(images, lights, mask=mask, order=3)  # doctest: +SKIP
@@ -601,16 +828,25 @@ def solve_hsh(
     """
     t_start = time.perf_counter()
     order = check_order(order)
+    if materials is not None:
+        if isinstance(materials, bool) or int(materials) != materials or not 1 <= int(materials) <= 8:
+            raise ValueError(f"`materials` must be an integer in [1, 8] or None (independent BRDFs), got {materials!r}")
+        materials = int(materials)
     if not ridge > 0:
         raise ValueError(f"`ridge` must be > 0 (it keeps the rank-deficient normal equations solvable), got {ridge}")
     if int(chunk_size) < 1:
         raise ValueError(f"`chunk_size` must be >= 1, got {chunk_size}")
     if max_iter < 0:
         raise ValueError(f"`max_iter` must be >= 0, got {max_iter}")
+    if int(calibration_pixels) < 1 or int(calibration_rounds) < 0:
+        raise ValueError(
+            f"`calibration_pixels` must be >= 1 and `calibration_rounds` >= 0, got {calibration_pixels}, {calibration_rounds}"
+        )
     d = prepare_inputs(images, lights, intensities, mask, min_lights=3, dtype=dtype)
     P, L, C = d.y.shape
     K = num_isotropic(order)
     dev, dt = d.y.device, d.y.dtype
+    wdt = dt if work_dtype is None else work_dtype
     w0, info = observation_weights(d.y, d.raw, d.background, dark_fraction, noise_sigma, saturation)
     info["underdetermined_pixels"] = int((w0.sum(-1) < 3).sum())
     # start
@@ -631,6 +867,48 @@ def solve_hsh(
     coefs = torch.empty(P, C, K, dtype=dt, device=dev)
     resid = torch.empty(P, dtype=dt, device=dev)
     wfin = torch.empty(P, L, dtype=dt, device=dev)
+    B = None
+    mixing = None
+    c_cauchy = 2.385
+    if materials is not None:
+        # --- calibration of the shared basis BRDFs on a random pixel subset
+        with torch.no_grad():
+            usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
+            if usable.numel() == 0:
+                usable = torch.arange(P, device=dev)
+            g = torch.Generator().manual_seed(int(seed))
+            S = usable[torch.randperm(usable.numel(), generator=g)[: int(calibration_pixels)].to(dev)]
+            _, alb = _solve_flat(d.y[S], d.lights, trimmed_weights(d.y[S], 0.25, 0.10))
+            W0 = _initial_mixing(alb, materials, seed)
+            # candidate starts of the alternation: the robust Lambertian normals and
+            # the independent-BRDF normals (exact azimuth, biased elevation); the
+            # alternation keeps the basin it starts in, so both are run and the
+            # one explaining the data best (smallest robust residual scale) wins
+            starts_S = [n_start[S]]
+            if "independent" in calibration_starts:
+                n_ind, _, _ = _independent_chunk(
+                    d.y[S], w0[S], n_start[S], d.lights, view, order, profile, ridge, True, 1, search_angles,
+                    search_azimuths, min(max_iter, 8), sigma_y,
+                )
+                starts_S.append(n_ind)
+            best = None
+            for k_s, nS0 in enumerate(starts_S):
+                B_k, scale_k, _ = _calibrate(
+                    d.y[S], w0[S], nS0.clone(), d.lights, order, W0, int(calibration_rounds), 5, 4, c_cauchy
+                )
+                if best is None or scale_k < best[1]:
+                    best = (B_k, scale_k, k_s)
+            B, scale, chosen = best
+            info["calibration_start"] = float(chosen)
+            # floor: the noise level, and 1e-4 of the typical brightness (quantisation,
+            # float32 rounding) so that noise-free data do not get a zero scale
+            yv = d.y.mean(-1)[w0 > 0]
+            typical = float(yv.abs().median()) if yv.numel() else 1.0
+            scale = max(scale, 3.0 * sigma_y, 1e-4 * typical, 1e-12)
+        info["materials"] = float(materials)
+        info["robust_scale"] = scale
+        info["calibration_pixels"] = float(S.numel())
+        mixing = torch.empty(P, C, materials, dtype=dt, device=dev)
     starts = list(range(0, P, int(chunk_size)))
     it = starts
     if progress:
@@ -642,35 +920,25 @@ def solve_hsh(
     with torch.no_grad():
         for s in it:
             sl = slice(s, min(P, s + int(chunk_size)))
-            ch = _Chunk(d.y[sl], w0[sl], d.lights, view, order, profile, ridge)
-            n = n_start[sl].clone()
-            ch.set_ridge_scale(n)
-            if robust:
-                yscale = ch.y.mean(-1).abs().amax(-1)
-                floor = torch.maximum(torch.full_like(yscale, 3 * sigma_y), 1e-3 * yscale).clamp(min=1e-12)
-                # IRLS on the coefficients at the start normal: observations the
-                # basis cannot explain (sharp highlights, interreflections) lose
-                # their weight before the normal moves
-                for _ in range(robust_iters + 1):
-                    ch.set_weights(_robust_weights(ch, n, w0[sl], floor))
-            # coarse search over a cone of candidates
-            if len(search_angles) > 0 and search_azimuths > 0:
-                best = ch.cost(n)
-                for cand in _cone_candidates(n, search_angles, search_azimuths):
-                    cc = ch.cost(cand)
-                    better = cc < best
-                    n = torch.where(better.unsqueeze(-1), cand, n)
-                    best = torch.where(better, cc, best)
-            n0 = n.clone()
-            n, _, k = _lm(ch, n, max_iter)
-            total_iters += k
-            if robust:
-                for _ in range(robust_iters):
-                    ch.set_weights(_robust_weights(ch, n, w0[sl], floor))
-                    n, _, k = _lm(ch, n, max_iter)
-                    total_iters += k
-            moved += int(((n0 - n).norm(dim=-1) > 1e-6).sum())
-            a = _final_coefficients(ch, n, nonneg)
+            if materials is not None:
+                n, w, Wt, k = _refine_normals_mixed(
+                    B, d.y[sl], w0[sl], n_start[sl], d.lights, order, scale, c_cauchy, max_iter, 5,
+                    search_angles, search_azimuths, wdt,
+                )
+                total_iters += k
+                n = torch.nn.functional.normalize(n, dim=-1)
+                ch = _Chunk(d.y[sl], w, d.lights, view, order, profile, ridge)
+                ch.set_ridge_scale(n)
+                a = _final_coefficients(ch, n, nonneg, prior=B.T.unsqueeze(0) @ Wt)
+                mixing[sl] = Wt.transpose(1, 2)
+            else:
+                n, ch, k = _independent_chunk(
+                    d.y[sl], w0[sl], n_start[sl], d.lights, view, order, profile, ridge, robust, robust_iters,
+                    search_angles, search_azimuths, max_iter, sigma_y,
+                )
+                total_iters += k
+                a = _final_coefficients(ch, n, nonneg)
+            moved += int(((n_start[sl] - n).norm(dim=-1) > 1e-6).sum())
             Phi = ch.design(n)
             r = (ch.y - Phi @ a) * ch.sw.unsqueeze(-1)
             resid[sl] = ((r * r).sum((-1, -2)) / (ch.w.sum(-1).clamp(min=1e-12) * C)).sqrt()
@@ -680,6 +948,7 @@ def solve_hsh(
     albedo = directional_albedo_view(coefs, normals[:, 2])
     info["lm_iterations"] = float(total_iters)
     info["chunks"] = float(len(starts))
+    info["moved_pixels"] = float(moved)
     return HSHResult(
         normals=scatter_pixels(normals, d.mask),
         coefficients=scatter_pixels(coefs, d.mask),
@@ -691,6 +960,8 @@ def solve_hsh(
         lights=d.lights,
         runtime_s=time.perf_counter() - t_start,
         info=info,
+        basis_brdfs=B,
+        mixing=None if mixing is None else scatter_pixels(mixing, d.mask),
     )
 
 
