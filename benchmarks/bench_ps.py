@@ -6,7 +6,8 @@ Usage:
 
 ``--data``: a DiLiGenT-layout folder with ground truth; prints mean / median
 angular error and time of Lambertian LS, robust (trimmed) Lambertian and the
-HSH solver. ``--synthetic-size N``: times the HSH solver on a DiLiGenT-sized
+HSH solver (shared basis BRDFs, the default; ``--independent`` adds the
+independent per-pixel model). ``--synthetic-size N``: times the HSH solver on a DiLiGenT-sized
 synthetic problem (N pixels, ``--lights`` lights, RGB, Blinn-Phong + GGX).
 """
 from __future__ import annotations
@@ -17,7 +18,7 @@ import time
 import torch
 
 
-def run_data(path, order, threads, max_pixels=None):
+def run_data(path, order, threads, max_pixels=None, independent=False):
     from torch_hsh import ps
     from torch_hsh.io.diligent import load_diligent
 
@@ -35,16 +36,19 @@ def run_data(path, order, threads, max_pixels=None):
     for name, fn in (
         ("Lambertian LS", lambda: ps.lambertian_ls(d.images, d.lights, mask=mask)),
         ("robust Lambertian (25%/10%)", lambda: ps.robust_lambertian(d.images, d.lights, mask=mask)),
-        (f"HSH order {order}", lambda: ps.solve_hsh(d.images, d.lights, mask=mask, order=order)),
-    ):
+        (f"HSH order {order} (shared, default)", lambda: ps.solve_hsh(d.images, d.lights, mask=mask, order=order)),
+    ) + ((
+        (f"HSH order {order} (independent)",
+         lambda: ps.solve_hsh(d.images, d.lights, mask=mask, order=order, materials=None)),
+    ) if independent else ()):
         t = time.perf_counter()
         r = fn()
         dt = time.perf_counter() - t
         e = ps.angular_error(r.normals, d.normals_gt)[mask] if d.normals_gt is not None else torch.tensor([float("nan")])
         rows.append((name, float(e.mean()), float(e.median()), dt))
-    print(f"{'method':30s} {'mean':>7s} {'median':>7s} {'time s':>8s}")
+    print(f"{'method':34s} {'mean':>7s} {'median':>7s} {'time s':>8s}")
     for name, m, md, dt in rows:
-        print(f"{name:30s} {m:7.2f} {md:7.2f} {dt:8.2f}")
+        print(f"{name:34s} {m:7.2f} {md:7.2f} {dt:8.2f}")
 
 
 def run_synthetic(n_pix, n_lights, order):
@@ -79,13 +83,14 @@ def main():
     ap.add_argument("--order", type=int, default=None)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--max-pixels", type=int, default=None, help="random subset of the mask (quick runs)")
+    ap.add_argument("--independent", action="store_true", help="also run the independent per-pixel model (slow)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     from torch_hsh.ps import DEFAULT_ORDER
 
     order = DEFAULT_ORDER if args.order is None else args.order
     if args.data:
-        run_data(args.data, order, args.threads, args.max_pixels)
+        run_data(args.data, order, args.threads, args.max_pixels, args.independent)
     if args.synthetic_size:
         run_synthetic(args.synthetic_size, args.lights, order)
     if not args.data and not args.synthetic_size:
