@@ -150,6 +150,9 @@ def main(argv=None):
     ap.add_argument("--data", default=None, help="DiLiGenT-layout object folder (default: synthetic scene)")
     ap.add_argument("--out", default="results/ps_demo", help="output folder (default results/ps_demo)")
     ap.add_argument("--order", type=int, default=None, help="HSH order (default torch_hsh.ps.DEFAULT_ORDER)")
+    ap.add_argument("--materials", type=int, default=None,
+                    help="shared basis BRDFs of the HSH solver (default torch_hsh.ps.DEFAULT_MATERIALS; "
+                         "0: independent BRDF per pixel)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--holdout", type=int, default=0, help="also fit on all but N lights and report relighting error")
     ap.add_argument("--size", type=int, default=48, help="synthetic image size")
@@ -165,6 +168,9 @@ def main(argv=None):
     from torch_hsh.io.exr import write_coefficient_maps_exr
 
     order = ps.DEFAULT_ORDER if args.order is None else args.order
+    if args.materials is not None and args.materials < 0:
+        ap.error(f"--materials must be >= 0, got {args.materials}")
+    materials = ps.DEFAULT_MATERIALS if args.materials is None else (args.materials or None)
     out = Path(args.out)
     check_out_dir(out, args.overwrite)
     dev = torch.device(args.device)
@@ -172,7 +178,8 @@ def main(argv=None):
     data = {k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in data.items()}
     imgs, lights, inten, mask, gt = data["images"], data["lights"], data["intensities"], data["mask"], data["normals_gt"]
     P, L = int(mask.sum()), imgs.shape[0]
-    print(f"data: {data['name']}  pixels={P} lights={L} order={order} device={dev}")
+    print(f"data: {data['name']}  pixels={P} lights={L} order={order} "
+          f"materials={materials if materials else 'independent'} device={dev}")
 
     rows = []
 
@@ -189,7 +196,7 @@ def main(argv=None):
     rob = ps.robust_lambertian(imgs, lights, inten, mask)
     rows.append(("robust Lambertian (trimmed)", *errs(rob.normals), time.perf_counter() - t))
     t = time.perf_counter()
-    res = ps.solve_hsh(imgs, lights, inten, mask, order=order, progress=True)
+    res = ps.solve_hsh(imgs, lights, inten, mask, order=order, materials=materials, progress=True)
     t_hsh = time.perf_counter() - t
     rows.append((f"HSH (order {order})", *errs(res.normals), t_hsh))
 
@@ -200,6 +207,7 @@ def main(argv=None):
     metrics = {
         "method": "hsh",
         "order": order,
+        "materials": materials,
         "pixels": P,
         "lights": L,
         "runtime_s": t_hsh,
@@ -217,7 +225,8 @@ def main(argv=None):
         err_map = ps.angular_error(res.normals, gt.to(res.normals), mask).cpu().numpy()
     if args.holdout > 0:
         t = time.perf_counter()
-        ho = ps.holdout_evaluation(imgs, lights, inten, mask, holdout=args.holdout, seed=args.seed, order=order)
+        ho = ps.holdout_evaluation(imgs, lights, inten, mask, holdout=args.holdout, seed=args.seed, order=order,
+                                   materials=materials)
         metrics["holdout"] = {
             "held_out_lights": ho.test_indices.tolist(),
             "relative_rmse": ho.relative_rmse,

@@ -16,6 +16,7 @@ Example:
 """
 from ._common import angular_error
 from .hsh import (
+    DEFAULT_MATERIALS,
     DEFAULT_ORDER,
     HoldoutResult,
     HSHResult,
@@ -27,6 +28,7 @@ from .hsh import (
 from .lambertian import LambertianResult, lambertian_ls, robust_lambertian, trimmed_weights
 
 __all__ = [
+    "DEFAULT_MATERIALS",
     "DEFAULT_ORDER",
     "HSHResult",
     "HoldoutResult",
