@@ -316,23 +316,23 @@ class _Chunk:
         return (r * r).sum(-1)
 
     def jacobian(self, n, idx):
-        """Residual (q, M) and its exact Jacobian (q, M, 2) w.r.t. the tangent coordinates at ``n``.
+        """Residual (q, M) and its Jacobian (q, M, 2) w.r.t. the tangent coordinates at ``n``.
 
-        ``dPhi`` along both tangents comes from one batched forward-mode AD pass
-        through the design matrix; the derivative of the closed-form coefficient
-        solve is then analytic (variable projection, Golub–Pereyra), reusing the
-        Cholesky factor: ``da = G^-1 (dPhi^T W e - Phi^T W dPhi a)``.
+        ``dPhi`` along both tangents comes from forward differences of the
+        design matrix; the derivative of the closed-form coefficient solve is
+        then analytic (variable projection, Golub–Pereyra), reusing the Cholesky
+        factor: ``da = G^-1 (dPhi^T W e - Phi^T W dPhi a)``.
         """
         t1, t2 = tangent_frame(n)
         q = n.shape[0]
-        # dPhi along both tangents by central differences of the (cheap, smooth)
-        # factorised design: O(h^2) ~ 1e-10 relative error in float64, several
-        # times faster than forward-mode AD through the batched kernel
-        h = 1e-5 if n.dtype == torch.float64 else 1e-2
-        stack = torch.cat([n, n + h * t1, n - h * t1, n + h * t2, n - h * t2])
-        D = self.design(stack).reshape(5, q, *self.y.shape[1:2], -1)
+        # dPhi along both tangents by forward differences of the (cheap, smooth)
+        # factorised design: ~1e-6 relative error in float64 (h = 1e-6), plenty
+        # for LM and several times faster than forward-mode AD through the kernel
+        h = 1e-6 if n.dtype == torch.float64 else 3e-3
+        stack = torch.cat([n, n + h * t1, n + h * t2])
+        D = self.design(stack).reshape(3, q, *self.y.shape[1:2], -1)
         Phi = D[0]
-        dPhi = torch.stack([(D[1] - D[2]) / (2 * h), (D[3] - D[4]) / (2 * h)], dim=1)  # (q, 2, L, K)
+        dPhi = torch.stack([(D[1] - D[0]) / h, (D[2] - D[0]) / h], dim=1)  # (q, 2, L, K)
         y, w, sw, rd = self.y[idx], self.w[idx], self.sw[idx], self.ridge_diag[idx]
         Pw = Phi * w.unsqueeze(-1)
         G = Pw.transpose(1, 2) @ Phi + torch.diag_embed(rd)
@@ -569,6 +569,8 @@ _INDEPENDENT_START_ITERS = 8  # LM iterations of the independent-model start on 
 _CAL_IRLS = 5  # IRLS passes (+1) per calibration round
 _CAL_LM_ITERS = 4  # LM iterations of the subset normals per calibration round
 _PIXEL_IRLS = 3  # reweighting passes per iteration of the per-pixel pass
+_SCALE_ROUNDS = 3  # calibration rounds that re-estimate the robust scale; later rounds keep it (MM-style)
+_CAL32 = True  # calibration in the work dtype (the (MK, MK) basis solve is always float64)
 _BASIS_RIDGE = 1e-3  # relative ridge (times the order profile) on the basis BRDFs
 
 
@@ -591,10 +593,12 @@ def _fit_basis_brdfs(Phi, w, y, W, order, ridge_rel):
     G = Pw.transpose(1, 2) @ Phi
     A = torch.einsum("pcm,pcn,pkl->mknl", W, W, G).reshape(M * K, M * K)
     r = torch.einsum("pcm,pkc->mk", W, Pw.transpose(1, 2) @ y).reshape(-1)
-    prof = _ridge_profile(order, y.dtype, y.device).repeat(M)
+    # the (M K, M K) system is tiny: solve it in float64 whatever the work dtype
+    A, r = A.double(), r.double()
+    prof = _ridge_profile(order, torch.float64, y.device).repeat(M)
     tr = A.diagonal().mean().clamp(min=1e-300)
-    A = A + torch.diag(ridge_rel * tr * prof)
-    B = torch.linalg.solve(A, r).reshape(M, K)
+    A = A + torch.diag(ridge_rel * tr * prof) + 1e-12 * tr * torch.eye(M * K, dtype=A.dtype, device=A.device)
+    B = torch.linalg.solve(A, r).reshape(M, K).to(y.dtype)
     nb = B.norm(dim=-1, keepdim=True)
     return B / torch.where(nb > 0, nb, torch.ones_like(nb))
 
@@ -625,8 +629,9 @@ def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge
             Wt, _, _ = solve_weights(Psi, w, y, rd)  # (p, M, C)
             W = Wt.transpose(1, 2)
             res = (y - Psi @ Wt).pow(2).mean(-1).sqrt()
-            live = res[w0 > 0]
-            scale = max(float(1.4826 * live.median()) if live.numel() else 1.0, 1e-12)
+            if rnd < _SCALE_ROUNDS:
+                live = res[w0 > 0]
+                scale = max(float(1.4826 * live.median()) if live.numel() else 1.0, 1e-12)
             w = _cauchy(res, w0, scale, c)
         n, _ = lm_normals(MixedDesign(B, lights, order), y, w, rd, n, lm_iter, 1e-6 if y.dtype == torch.float64 else 3e-3)
     return B, scale, n
@@ -736,7 +741,7 @@ def solve_hsh(
     ridge: float = 0.1,
     search_angles: Sequence[float] = (8.0, 16.0),
     search_azimuths: int = 6,
-    max_iter: int = 15,
+    max_iter: Optional[int] = None,
     robust: bool = True,
     robust_iters: int = 2,
     calibration_pixels: int = 2048,
@@ -791,8 +796,9 @@ def solve_hsh(
         search_angles: cone angles in degrees of the coarse candidate search
             (empty: no search).
         search_azimuths: candidates per cone angle.
-        max_iter: Levenberg–Marquardt iterations per stage (independent model)
-            or IRLS-LM iterations of the per-pixel pass (shared model).
+        max_iter: Levenberg–Marquardt iterations per stage (independent model,
+            default 15) or IRLS-LM iterations of the per-pixel pass (shared
+            model, default 8; a pixel stops earlier once its normal is still).
         robust: independent model only: run Cauchy IRLS stages (``robust_iters`` of them).
         robust_iters: independent model only: number of reweighting stages.
         calibration_pixels: shared model: size of the pixel subset used to fit ``B``.
@@ -836,8 +842,11 @@ def solve_hsh(
         raise ValueError(f"`ridge` must be > 0 (it keeps the rank-deficient normal equations solvable), got {ridge}")
     if int(chunk_size) < 1:
         raise ValueError(f"`chunk_size` must be >= 1, got {chunk_size}")
-    if max_iter < 0:
-        raise ValueError(f"`max_iter` must be >= 0, got {max_iter}")
+    if max_iter is None:
+        max_iter = 15 if materials is None else 8
+    if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 0:
+        raise ValueError(f"`max_iter` must be an integer >= 0, got {max_iter!r}")
+    max_iter = int(max_iter)
     if int(calibration_pixels) < 1 or int(calibration_rounds) < 0:
         raise ValueError(
             f"`calibration_pixels` must be >= 1 and `calibration_rounds` >= 0, got {calibration_pixels}, {calibration_rounds}"
@@ -894,10 +903,12 @@ def solve_hsh(
                 starts_S.append(n_ind)
             best = None
             for k_s, nS0 in enumerate(starts_S):
+                cdt = wdt if _CAL32 else dt
                 B_k, scale_k, _ = _calibrate(
-                    d.y[S], w0[S], nS0.clone(), d.lights, order, W0, int(calibration_rounds), _CAL_IRLS, _CAL_LM_ITERS,
-                    c_cauchy,
+                    d.y[S].to(cdt), w0[S].to(cdt), nS0.to(cdt), d.lights.to(cdt), order, W0.to(cdt),
+                    int(calibration_rounds), _CAL_IRLS, _CAL_LM_ITERS, c_cauchy,
                 )
+                B_k = B_k.to(dt)
                 if best is None or scale_k < best[1]:
                     best = (B_k, scale_k, k_s)
             B, scale, chosen = best
