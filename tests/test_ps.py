@@ -159,7 +159,8 @@ def test_image_layout_mask_and_chunks():
     r2 = ps.solve_hsh(img, l, mask=mask, chunk_size=1000, max_iter=5, search_angles=())
     assert r1.normals.shape == (6, 8, 3) and torch.all(r1.normals[0] == 0)
     assert torch.allclose(r1.normals, r2.normals, atol=1e-9)
-    assert _mean_err(r1.normals[mask], n.reshape(6, 8, 3)[mask]) < 0.1  # float32 work dtype
+    # the shared model's small ridges on the mixing weights bias a noise-free Lambertian scene by ~0.1 deg
+    assert _mean_err(r1.normals[mask], n.reshape(6, 8, 3)[mask]) < 0.25
 
 
 def test_saturation_and_dark_observations_are_dropped():
@@ -209,8 +210,8 @@ def test_mixed_design_matches_factorised_design(order):
     l = torch.nn.functional.normalize(torch.randn(30, 3, generator=g, dtype=DT) + torch.tensor([0.0, 0.0, 1.0], dtype=DT), dim=-1)
     B = torch.randn(3, num_isotropic(order), generator=g, dtype=DT)
     X, T = _design_factors(n, l, order)
-    ref = X @ T @ B.T
-    got = MixedDesign(B, l, order)(n)
+    ref = (X @ T @ B.T).transpose(1, 2)
+    got = MixedDesign(B, l, order)(n)  # (p, M, L)
     assert torch.allclose(got, ref, atol=1e-12 * float(ref.abs().max()) + 1e-14)
 
 

@@ -59,7 +59,7 @@ from functools import lru_cache
 from ..basis import _iso_kernel, _polar_consts, _polar_table, _polar_table_t, _safe_s, isotropic_indices, num_isotropic
 from ..render import render_coefficients
 from ._common import angular_error, prepare_inputs, robust_sigma, scatter_pixels, tangent_frame
-from ._mixture import MixedDesign, _ridge_diag, lm_normals, reduced_cost, solve_weights
+from ._mixture import MixedDesign, _ridge_diag, combine, lm_normals, reduced_cost, solve_weights
 from .lambertian import _solve_flat, trimmed_weights
 
 __all__ = [
@@ -619,21 +619,22 @@ def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge
     w = w0.clone()
     scale = None
     B = None
+    yT = y.transpose(1, 2).contiguous()  # (p, C, L): the layout of the mixed design
     for rnd in range(rounds):
         X, T = _design_factors(n, lights, order)
         Phi = X @ T
         for _ in range(irls + 1):
             B = _fit_basis_brdfs(Phi, w, y, W, order, basis_ridge)
-            Psi = Phi @ B.T
+            Psi = (Phi @ B.T).transpose(1, 2).contiguous()  # (p, M, L)
             rd = _ridge_diag(Psi, w0, weight_ridge)
-            Wt, _, _ = solve_weights(Psi, w, y, rd)  # (p, M, C)
+            Wt, _, _ = solve_weights(Psi, w, yT, rd)  # (p, M, C)
             W = Wt.transpose(1, 2)
-            res = (y - Psi @ Wt).pow(2).mean(-1).sqrt()
+            res = (yT - combine(Wt, Psi)).pow(2).mean(1).sqrt()
             if rnd < _SCALE_ROUNDS:
                 live = res[w0 > 0]
                 scale = max(float(1.4826 * live.median()) if live.numel() else 1.0, 1e-12)
             w = _cauchy(res, w0, scale, c)
-        n, _ = lm_normals(MixedDesign(B, lights, order), y, w, rd, n, lm_iter, 1e-6 if y.dtype == torch.float64 else 3e-3)
+        n, _ = lm_normals(MixedDesign(B, lights, order), yT, w, rd, n, lm_iter, 1e-6 if y.dtype == torch.float64 else 3e-3)
     return B, scale, n
 
 
@@ -684,7 +685,7 @@ def _refine_normals_mixed(B, y, w0, n, lights, order, scale, c, iters, irls, sea
     """
     out_dt = y.dtype
     des = MixedDesign(B.to(work_dtype), lights.to(work_dtype), order)
-    yd, w0d, nd = y.to(work_dtype), w0.to(work_dtype), n.to(work_dtype)
+    yd, w0d, nd = y.to(work_dtype).transpose(1, 2).contiguous(), w0.to(work_dtype), n.to(work_dtype)  # yd (p, C, L)
     h = 1e-6 if work_dtype == torch.float64 else 3e-3
     Psi = des(nd)
     w = w0d.clone()
@@ -693,7 +694,7 @@ def _refine_normals_mixed(B, y, w0, n, lights, order, scale, c, iters, irls, sea
         for _ in range(irls):
             rd = _ridge_diag(Psi, w, 1e-4)
             Wt, _, _ = solve_weights(Psi, w, yy, rd)
-            res = (yy - Psi @ Wt).pow(2).mean(-1).sqrt()
+            res = (yy - combine(Wt, Psi)).pow(2).mean(1).sqrt()
             w = _cauchy(res, ww0, scale, c)
         return w
 
