@@ -134,7 +134,10 @@ class MixedDesign:
         E = E.transpose(1, 2).contiguous()  # (p, M, D)
         t = 2.0 * zi_c - 1.0  # (p, L)
         if P >= 1:
-            sio = _safe_s(zi_c) * _safe_s(zo_c).unsqueeze(-1)
+            if torch.is_grad_enabled():
+                sio = _safe_s(zi_c) * _safe_s(zo_c).unsqueeze(-1)
+            else:  # same values; the derivative guard of _safe_s is not needed without autograd
+                sio = torch.sqrt(zi_c / (1.0 + zi_c) * (zo_c / (1.0 + zo_c)).unsqueeze(-1))
             a1 = sio * (lz.unsqueeze(0) - zi * zo.unsqueeze(-1))
             r1 = sio * sio * (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c).unsqueeze(-1)
         # azimuthal factors G_q (with the shading), sqrt(2) for q >= 1
@@ -143,6 +146,7 @@ class MixedDesign:
             gs.append(a1 * mask)
             for _ in range(2, P + 1):
                 gs.append(2.0 * a1 * gs[-1] - r1 * gs[-2])
+        gs = [gs[0]] + [g * math.sqrt(2.0) for g in gs[1:]]
         outs = []
         for m in range(M):
             acc = None
@@ -154,8 +158,7 @@ class MixedDesign:
                 poly = Eq[:, dq - 1 : dq].expand(-1, t.shape[1])
                 for dd in range(dq - 2, -1, -1):
                     poly = torch.addcmul(Eq[:, dd : dd + 1], poly, t)
-                term = poly * gs[q] if q == 0 else poly * (gs[q] * math.sqrt(2.0))
-                acc = term if acc is None else acc + term
+                acc = poly * gs[q] if acc is None else torch.addcmul(acc, poly, gs[q])
             outs.append(acc)
         return torch.stack(outs, dim=1)
 

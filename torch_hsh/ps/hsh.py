@@ -272,8 +272,8 @@ class _Chunk:
         X, T = _design_factors(n, lights, self.order)
         return X @ T
 
-    def set_ridge_scale(self, n):
-        Phi = self.design(n)
+    def set_ridge_scale(self, n, Phi=None):
+        Phi = self.design(n) if Phi is None else Phi
         G = torch.einsum("plk,pl,plk->pk", Phi, self.w, Phi)
         s = G.mean(-1)
         s = torch.where(s > 0, s, torch.ones_like(s))
@@ -534,9 +534,10 @@ def _robust_weights(ch: _Chunk, n, w0, sigma_floor, c: float = 2.385):
     return w0 / (1.0 + (res / (c * scale.unsqueeze(-1))) ** 2)
 
 
-def _final_coefficients(ch: _Chunk, n, nonneg: bool, prior=None, gamma: float = 10.0, iters: int = 4, virtual: int = 48):
+def _final_coefficients(ch: _Chunk, n, nonneg: bool, prior=None, gamma: float = 10.0, iters: int = 4, virtual: int = 48,
+                        Phi=None):
     """Per-pixel ridge coefficients ``(p, K, C)``, shrunk toward ``prior`` (default 0), with the non-negativity safeguard."""
-    Phi = ch.design(n)
+    Phi = ch.design(n) if Phi is None else Phi
     a0 = torch.zeros(Phi.shape[0], Phi.shape[-1], ch.y.shape[-1], dtype=Phi.dtype, device=Phi.device) if prior is None else prior
     a = a0 + ch.solve(Phi, ch.w, ch.ridge_diag, ch.y - Phi @ a0)
     if not nonneg:
@@ -942,8 +943,9 @@ def solve_hsh(
                 total_iters += k
                 n = torch.nn.functional.normalize(n, dim=-1)
                 ch = _Chunk(d.y[sl], w, d.lights, view, order, profile, ridge)
-                ch.set_ridge_scale(n)
-                a = _final_coefficients(ch, n, nonneg, prior=B.T.unsqueeze(0) @ Wt)
+                Phi = ch.design(n)
+                ch.set_ridge_scale(n, Phi)
+                a = _final_coefficients(ch, n, nonneg, prior=B.T.unsqueeze(0) @ Wt, Phi=Phi)
                 mixing[sl] = Wt.transpose(1, 2)
             else:
                 n, ch, k = _independent_chunk(
@@ -951,9 +953,9 @@ def solve_hsh(
                     search_angles, search_azimuths, max_iter, sigma_y,
                 )
                 total_iters += k
-                a = _final_coefficients(ch, n, nonneg)
+                Phi = ch.design(n)
+                a = _final_coefficients(ch, n, nonneg, Phi=Phi)
             moved += int(((n_start[sl] - n).norm(dim=-1) > 1e-6).sum())
-            Phi = ch.design(n)
             r = (ch.y - Phi @ a) * ch.sw.unsqueeze(-1)
             resid[sl] = ((r * r).sum((-1, -2)) / (ch.w.sum(-1).clamp(min=1e-12) * C)).sqrt()
             normals[sl] = n
