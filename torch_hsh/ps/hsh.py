@@ -10,36 +10,26 @@ isotropic Helmholtz coefficients per channel):
 with ``v = (0, 0, 1)`` and :math:`B_k` from
 :func:`torch_hsh.helmholtz_isotropic_world` (zero below the horizon).
 
-Method (see ``docs/photometric_stereo.md``):
+Two models (see ``docs/photometric_stereo.md``):
 
-1. **Start**: trimmed (robust) Lambertian least squares.
-2. **Observation weights** from thresholds that adapt to the data: saturated
-   observations (a plateau at the largest raw value present, or a given
-   level), dark observations (below ``3 sigma`` of a robust noise estimate from
-   the background, or below ``dark_fraction`` of the pixel's 75th-percentile
-   brightness) and non-finite values get weight 0. Dark observations carry no
-   usable constraint (attached or cast shadow); for ``n . l <= 0`` the model
-   is zero, so a *lit* observation there still counts against that normal.
-3. **Variable projection**: for a fixed normal the coefficients solve a
-   batched ridge-regularised weighted least-squares problem in closed form
-   (Cholesky of ``(K, K)`` normal equations). The ridge is
-   ``lambda * s * (1e-6 + (p(p+1) + r(r+1)) / 2)`` for function ``(p, r, q)`` (the
-   Lambertian function (0, 0, 0) is left practically free),
-   growing with order, ``s`` the mean diagonal of the Gram matrix at the start.
-   The reduced cost (weighted residual plus ridge term) is a function of the
-   normal only.
-4. **Coarse search** over a cone of normal candidates around the start, then
-   **Levenberg–Marquardt** on the reduced problem in a 2-D tangent
-   parametrisation ``n(u) = normalize(n0 + u1 t1 + u2 t2)``, re-centred after
-   every accepted step. The Jacobian of the full residual (including the
-   closed-form coefficient solve) comes from forward-mode autodiff, one batched
-   pass for both tangent directions.
-5. **Robust reweighting** (IRLS, Cauchy weights with a per-pixel MAD scale)
-   against effects outside the model (interreflections, unmasked cast
-   shadows, highlights sharper than the basis), then LM again.
-6. **Final coefficients** with a non-negativity safeguard: where the rendered
-   BRDF is negative (at the lights and at a fixed hemisphere of virtual
-   lights) the prediction is penalised toward zero and the solve repeated.
+* **shared basis BRDFs** (default, ``materials=M``): :math:`a_{pc} = \sum_m
+  W_{pcm} B_m` (+ a ridge-shrunk per-pixel residual fitted at the end), with
+  ``M`` basis BRDFs shared by the object and free per-pixel RGB mixing
+  weights. Sharing removes the single-view elevation ambiguity of a BRDF
+  that is free at every pixel. The basis is calibrated on a pixel subset
+  (Cauchy IRLS on the basis and mixing weights alternating with LM on the
+  normals, from two starts), then every pixel runs IRLS + variable-projection
+  LM on its normal with the basis fixed (mixing weights in closed form).
+* **independent** (``materials=None``): ``K`` free coefficients per pixel and
+  channel with a ridge that grows with order; VP-LM from the robust
+  Lambertian start with a coarse cone search and Cauchy IRLS stages.
+
+Common pieces: observation weights from adaptive dark / saturation thresholds
+(:func:`observation_weights`), a tangent parametrisation
+``n(u) = normalize(n0 + u1 t1 + u2 t2)`` re-centred after every accepted step,
+Golub–Pereyra Jacobians of the projected residual, and final coefficients with
+a non-negativity safeguard (the rendered BRDF is penalised where it is
+negative at the lights and at a fixed hemisphere of virtual lights).
 
 Everything is batched over pixels and processed in chunks of ``chunk_size``
 pixels, so memory is bounded by ``O(chunk_size * L * K)``.
