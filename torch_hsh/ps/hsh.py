@@ -561,8 +561,6 @@ _CAL_IRLS = 5  # IRLS passes (+1) per calibration round
 _CAL_LM_ITERS = 4  # LM iterations of the subset normals per calibration round
 _PIXEL_IRLS = 3  # reweighting passes per iteration of the per-pixel pass
 _SCALE_ROUNDS = 3  # calibration rounds that re-estimate the robust scale; later rounds keep it (MM-style)
-_SELECT = "loss"
-_CAL32 = True  # calibration in the work dtype (the (MK, MK) basis solve is always float64)
 _BASIS_RIDGE = 1e-3  # relative ridge (times the order profile) on the basis BRDFs
 
 
@@ -799,7 +797,8 @@ def solve_hsh(
         calibration_starts: shared model: starts of the calibration, any of
             ``"lambertian"`` (robust Lambertian normals, always used) and
             ``"independent"`` (normals of the independent model on the subset);
-            the calibration with the smallest robust residual scale is kept.
+            the calibration with the smallest Cauchy loss of the subset
+            residuals at a common scale is kept.
         dark_fraction, noise_sigma, saturation: thresholds, see :func:`observation_weights`.
         nonneg: apply the non-negativity safeguard to the final coefficients.
         chunk_size: pixels per batch of the per-pixel passes (bounded memory).
@@ -896,31 +895,31 @@ def solve_hsh(
                 starts_S.append(n_ind)
             cands = []
             for k_s, nS0 in enumerate(starts_S):
-                cdt = wdt if _CAL32 else dt
+                cdt = wdt  # calibration in the work dtype (its (MK, MK) basis solve is always float64)
                 B_k, scale_k, n_k = _calibrate(
                     d.y[S].to(cdt), w0[S].to(cdt), nS0.to(cdt), d.lights.to(cdt), order, W0.to(cdt),
                     int(calibration_rounds), _CAL_IRLS, _CAL_LM_ITERS, c_cauchy,
                 )
                 cands.append((B_k.to(dt), scale_k, k_s, n_k.to(dt)))
-            if _SELECT == "scale":
-                B, scale, chosen, _ = min(cands, key=lambda t: t[1])
-            else:
-                sig = min(t[1] for t in cands)
-                losses = []
-                for B_k, scale_k, k_s, n_k in cands:
-                    X, T = _design_factors(n_k, d.lights, order)
-                    Psi = (X @ (T @ B_k.T)).transpose(1, 2)
-                    yT = d.y[S].transpose(1, 2)
-                    w_k = w0[S].clone()
-                    for _ in range(3):
-                        rd = _ridge_diag(Psi, w_k, 1e-4)
-                        Wt, _, _ = solve_weights(Psi, w_k, yT, rd)
-                        res = (yT - combine(Wt, Psi)).pow(2).mean(1).sqrt()
-                        w_k = _cauchy(res, w0[S], sig, c_cauchy)
-                    losses.append(float((w0[S] * torch.log1p((res / (c_cauchy * sig)) ** 2)).sum()))
-                info["calibration_losses"] = losses
-                i_best = min(range(len(cands)), key=lambda i: losses[i])
-                B, scale, chosen, _ = cands[i_best]
+            # compare the calibrations by one objective: the Cauchy loss of the
+            # subset residuals at a common scale (the smaller of the two); the
+            # scale alone would reward a fit that bends the basis to biased normals
+            sig = min(t[1] for t in cands)
+            losses = []
+            for B_k, scale_k, k_s, n_k in cands:
+                X, T = _design_factors(n_k, d.lights, order)
+                Psi = (X @ (T @ B_k.T)).transpose(1, 2)
+                yT = d.y[S].transpose(1, 2)
+                w_k = w0[S].clone()
+                for _ in range(3):
+                    rd = _ridge_diag(Psi, w_k, 1e-4)
+                    Wt, _, _ = solve_weights(Psi, w_k, yT, rd)
+                    res = (yT - combine(Wt, Psi)).pow(2).mean(1).sqrt()
+                    w_k = _cauchy(res, w0[S], sig, c_cauchy)
+                losses.append(float((w0[S] * torch.log1p((res / (c_cauchy * sig)) ** 2)).sum()))
+            info["calibration_losses"] = losses
+            i_best = min(range(len(cands)), key=lambda i: losses[i])
+            B, scale, chosen, _ = cands[i_best]
             info["calibration_start"] = float(chosen)
             # floor: the noise level, and 1e-4 of the typical brightness (quantisation,
             # float32 rounding) so that noise-free data do not get a zero scale
