@@ -51,7 +51,7 @@ def run_data(path, order, threads, max_pixels=None, independent=False):
         print(f"{name:34s} {m:7.2f} {md:7.2f} {dt:8.2f}")
 
 
-def run_synthetic(n_pix, n_lights, order):
+def run_synthetic(n_pix, n_lights, order, repeat=3):
     from torch_hsh import ps
     from torch_hsh.brdf import BlinnPhong
     from torch_hsh.render import render
@@ -66,11 +66,17 @@ def run_synthetic(n_pix, n_lights, order):
     alb = 0.2 + 0.6 * torch.rand(n_pix, 3, generator=g, dtype=torch.float64)
     img = render(n, l, BlinnPhong(alb, torch.full((n_pix, 1), 0.3, dtype=torch.float64),
                                   torch.full((n_pix, 1), 20.0, dtype=torch.float64)), read_noise=1e-3, seed=0)
-    t = time.perf_counter()
-    r = ps.solve_hsh(img, l, order=order, progress=True)
-    dt = time.perf_counter() - t
+    times = []
+    for _ in range(max(1, repeat)):
+        t = time.perf_counter()
+        r = ps.solve_hsh(img, l, order=order, progress=repeat == 1)
+        times.append(time.perf_counter() - t)
+    times.sort()
+    dt = times[len(times) // 2]
     e = ps.angular_error(r.normals, n)
-    print(f"synthetic: {n_pix} pixels x {n_lights} lights x RGB, order {order}: {dt:.2f} s, "
+    if len(times) > 1:
+        print(f"runs: {', '.join(f'{x:.2f}' for x in times)} s (best {times[0]:.2f}, median {dt:.2f})")
+    print(f"synthetic: {n_pix} pixels x {n_lights} lights x RGB, order {order}: {dt:.2f} s (median), "
           f"mean error {float(e.mean()):.2f} deg (Lambertian LS "
           f"{float(ps.angular_error(ps.lambertian_ls(img, l).normals, n).mean()):.2f})")
 
@@ -82,6 +88,7 @@ def main():
     ap.add_argument("--lights", type=int, default=96)
     ap.add_argument("--order", type=int, default=None)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=3, help="synthetic timing: runs (median and best reported)")
     ap.add_argument("--max-pixels", type=int, default=None, help="random subset of the mask (quick runs)")
     ap.add_argument("--independent", action="store_true", help="also run the independent per-pixel model (slow)")
     args = ap.parse_args()
@@ -92,7 +99,7 @@ def main():
     if args.data:
         run_data(args.data, order, args.threads, args.max_pixels, args.independent)
     if args.synthetic_size:
-        run_synthetic(args.synthetic_size, args.lights, order)
+        run_synthetic(args.synthetic_size, args.lights, order, args.repeat)
     if not args.data and not args.synthetic_size:
         ap.error("give --data DIR and/or --synthetic-size N")
 

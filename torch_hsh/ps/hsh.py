@@ -306,7 +306,10 @@ class _Chunk:
         return (r * r).sum(-1)
 
     def jacobian(self, n, idx):
-        """Residual (q, M) and its Jacobian (q, M, 2) w.r.t. the tangent coordinates at ``n``.
+        """Gauss–Newton normal equations ``J^T J (q, 2, 2)``, ``J^T r (q, 2)`` of the reduced residual at ``n``.
+
+        ``J`` is the Jacobian of the stacked residual ``[sqrt(w)(y - Phi a); sqrt(ridge) a]``
+        w.r.t. the tangent coordinates (never formed explicitly).
 
         ``dPhi`` along both tangents comes from forward differences of the
         design matrix; the derivative of the closed-form coefficient solve is
@@ -335,11 +338,15 @@ class _Chunk:
         rhs_cat = torch.cat([rhs[:, 0], rhs[:, 1]], dim=-1)  # (q, K, 2C)
         da = torch.cholesky_solve(rhs_cat, Lc)
         da = torch.stack([da[..., :C], da[..., C:]], dim=1)  # (q, 2, K, C)
-        dr_data = -sw[:, None, :, None] * (dPa + Phi.unsqueeze(1) @ da)
-        dr_reg = rd.sqrt()[:, None, :, None] * da
-        J = torch.cat([dr_data.flatten(2), dr_reg.flatten(2)], dim=2).transpose(1, 2)  # (q, M, 2)
-        r = torch.cat([(sw.unsqueeze(-1) * e).flatten(1), (rd.sqrt().unsqueeze(-1) * a).flatten(1)], dim=1)
-        return r, J, t1, t2
+        dr_data = (-sw[:, None, :, None] * (dPa + Phi.unsqueeze(1) @ da)).flatten(2)  # (q, 2, L C)
+        srd = rd.sqrt()
+        dr_reg = (srd[:, None, :, None] * da).flatten(2)  # (q, 2, K C)
+        r_data = (sw.unsqueeze(-1) * e).flatten(1).unsqueeze(-1)
+        r_reg = (srd.unsqueeze(-1) * a).flatten(1).unsqueeze(-1)
+        # normal equations of the stacked residual [data; ridge] without forming it
+        JtJ = dr_data @ dr_data.transpose(1, 2) + dr_reg @ dr_reg.transpose(1, 2)  # (q, 2, 2)
+        g = (dr_data @ r_data + dr_reg @ r_reg).squeeze(-1)  # (q, 2)
+        return JtJ, g, t1, t2
 
 
 
@@ -412,9 +419,7 @@ def _lm(ch: _Chunk, n: torch.Tensor, max_iter: int, tol: float = 1e-5, max_step:
             break
         iters += 1
         ni = n[idx]
-        r0, J, t1, t2 = ch.jacobian(ni, idx)
-        JtJ = J.transpose(1, 2) @ J
-        g = (J.transpose(1, 2) @ r0.unsqueeze(-1)).squeeze(-1)
+        JtJ, g, t1, t2 = ch.jacobian(ni, idx)
         D = JtJ.diagonal(dim1=-2, dim2=-1)
         D = D + 1e-12 * D.sum(-1, keepdim=True) + 1e-30
         A = JtJ + torch.diag_embed(mu[idx].unsqueeze(-1) * D)
@@ -559,7 +564,7 @@ def _final_coefficients(ch: _Chunk, n, nonneg: bool, prior=None, gamma: float = 
 _INDEPENDENT_START_ITERS = 8  # LM iterations of the independent-model start on the subset
 _CAL_IRLS = 5  # IRLS passes (+1) per calibration round
 _CAL_LM_ITERS = 4  # LM iterations of the subset normals per calibration round
-_PIXEL_IRLS = 3  # reweighting passes per iteration of the per-pixel pass
+_PIXEL_IRLS = 2  # reweighting passes per iteration of the per-pixel pass
 _SCALE_ROUNDS = 3  # calibration rounds that re-estimate the robust scale; later rounds keep it (MM-style)
 _BASIS_RIDGE = 1e-3  # relative ridge (times the order profile) on the basis BRDFs
 
