@@ -813,7 +813,7 @@ def solve_hsh(
             (default float32, about 3x faster than float64 with the same
             accuracy; ``None``: ``dtype``).
         seed: seed of the calibration subset.
-        progress: show a tqdm progress bar over chunks.
+        progress: show tqdm progress bars (calibration starts, then chunks of pixels).
 
     Returns:
         :class:`HSHResult` (normals, coefficient maps, directional albedo,
@@ -899,7 +899,12 @@ def solve_hsh(
                 n_ind = torch.nn.functional.normalize(n_ind.to(dt), dim=-1)
                 starts_S.append(n_ind)
             cands = []
-            for k_s, nS0 in enumerate(starts_S):
+            it_starts = list(enumerate(starts_S))
+            if progress:
+                from tqdm.auto import tqdm
+
+                it_starts = tqdm(it_starts, desc="HSH calibration (basis BRDFs)", unit="start")
+            for k_s, nS0 in it_starts:
                 cdt = wdt  # calibration in the work dtype (its (MK, MK) basis solve is always float64)
                 B_k, scale_k, n_k = _calibrate(
                     d.y[S].to(cdt), w0[S].to(cdt), nS0.to(cdt), d.lights.to(cdt), order, W0.to(cdt),
