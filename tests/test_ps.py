@@ -225,3 +225,11 @@ def test_materials_argument_is_validated():
     for bad in (0, 9, 1.5, True):
         with pytest.raises(ValueError, match="materials"):
             ps.solve_hsh(img, l, materials=bad)
+    with pytest.raises(ValueError, match="calibration_starts"):
+        ps.solve_hsh(img, l, calibration_starts=("lambertian", "oracle"))
+    with pytest.raises(ValueError, match="calibration_starts"):
+        ps.solve_hsh(img, l, calibration_starts="independent")
+    with pytest.raises(ValueError, match="work_dtype"):
+        ps.solve_hsh(img, l, work_dtype=torch.float16)
+    with pytest.raises(ValueError, match="calibration_pixels"):
+        ps.solve_hsh(img, l, calibration_pixels=0)

@@ -84,8 +84,10 @@ class HSHResult:
         coefficients: ``(*S, C, K)`` isotropic Helmholtz coefficient maps.
         albedo: ``(*S, C)`` directional albedo toward the camera,
             :math:`\\int f(\\omega_i, v) \\cos\\theta_i d\\omega_i`.
-        residual: ``(*S)`` weighted RMS residual of the fit.
-        weights: ``(*S, L)`` final observation weights (0 = not used).
+        residual: ``(*S)`` weighted RMS residual of the coefficient fit.
+        weights: ``(*S, L)`` final robust observation weights of the normal
+            estimation (0 = not used; the shared model fits the coefficients
+            to every valid observation).
         mask: ``(*S)`` bool.
         order: basis order.
         lights: ``(L, 3)`` lights used in the fit.
@@ -844,6 +846,13 @@ def solve_hsh(
     if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 0:
         raise ValueError(f"`max_iter` must be an integer >= 0, got {max_iter!r}")
     max_iter = int(max_iter)
+    bad = [s_ for s_ in calibration_starts if s_ not in ("lambertian", "independent")]
+    if isinstance(calibration_starts, str) or bad:
+        raise ValueError(
+            f"`calibration_starts` must be a sequence of 'lambertian' / 'independent', got {calibration_starts!r}"
+        )
+    if work_dtype is not None and work_dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"`work_dtype` must be torch.float32, torch.float64 or None, got {work_dtype!r}")
     if int(calibration_pixels) < 1 or int(calibration_rounds) < 0:
         raise ValueError(
             f"`calibration_pixels` must be >= 1 and `calibration_rounds` >= 0, got {calibration_pixels}, {calibration_rounds}"
@@ -958,7 +967,10 @@ def solve_hsh(
                 )
                 total_iters += k
                 n = torch.nn.functional.normalize(n, dim=-1)
-                ch = _Chunk(d.y[sl], w, d.lights, view, order, profile, ridge)
+                w_out = w
+                # the robust weights served the normals; the coefficients fit every valid
+                # observation (shrunk toward the shared mix), which relights best
+                ch = _Chunk(d.y[sl], w0[sl], d.lights, view, order, profile, ridge)
                 Phi = ch.design(n)
                 ch.set_ridge_scale(n, Phi)
                 a = _final_coefficients(ch, n, nonneg, prior=B.T.unsqueeze(0) @ Wt, Phi=Phi)
@@ -969,6 +981,7 @@ def solve_hsh(
                     search_angles, search_azimuths, max_iter, sigma_y,
                 )
                 total_iters += k
+                w_out = ch.w
                 Phi = ch.design(n)
                 a = _final_coefficients(ch, n, nonneg, Phi=Phi)
             moved += int(((n_start[sl] - n).norm(dim=-1) > 1e-6).sum())
@@ -976,7 +989,7 @@ def solve_hsh(
             resid[sl] = ((r * r).sum((-1, -2)) / (ch.w.sum(-1).clamp(min=1e-12) * C)).sqrt()
             normals[sl] = n
             coefs[sl] = a.transpose(1, 2)
-            wfin[sl] = ch.w
+            wfin[sl] = w_out
     albedo = directional_albedo_view(coefs, normals[:, 2])
     info["lm_iterations"] = float(total_iters)
     info["chunks"] = float(len(starts))
