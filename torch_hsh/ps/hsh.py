@@ -938,7 +938,10 @@ def solve_hsh(
                 losses.append(float((w0[S] * torch.log1p((res / (c_cauchy * sig)) ** 2)).sum()))
             info["calibration_losses"] = losses
             i_best = min(range(len(cands)), key=lambda i: losses[i])
-            B, scale, chosen, _ = cands[i_best]
+            B, scale, chosen, n_cal = cands[i_best]
+            # the calibrated subset normals are the best start the per-pixel pass has for them
+            n_start = n_start.clone()
+            n_start[S] = torch.nn.functional.normalize(n_cal.to(dt), dim=-1)
             info["calibration_start"] = float(chosen)
             # floor: the noise level, and 1e-4 of the typical brightness (quantisation,
             # float32 rounding) so that noise-free data do not get a zero scale
