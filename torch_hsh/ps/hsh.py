@@ -46,9 +46,9 @@ import torch
 from .._checks import check_order
 from functools import lru_cache
 
-from ..basis import _iso_kernel, _polar_consts, _polar_table, _polar_table_t, _safe_s, isotropic_indices, num_isotropic
+from ..basis import _polar_consts, _polar_table, _polar_table_t, _safe_s, isotropic_indices, num_isotropic
 from ..render import render_coefficients
-from ._common import angular_error, prepare_inputs, robust_sigma, scatter_pixels, tangent_frame
+from ._common import prepare_inputs, robust_sigma, scatter_pixels, tangent_frame
 from ._mixture import MixedDesign, _ridge_diag, combine, lm_normals, reduced_cost, solve_weights
 from .lambertian import _solve_flat, trimmed_weights
 
