@@ -233,3 +233,26 @@ def test_materials_argument_is_validated():
         ps.solve_hsh(img, l, work_dtype=torch.float16)
     with pytest.raises(ValueError, match="calibration_pixels"):
         ps.solve_hsh(img, l, calibration_pixels=0)
+
+
+def test_noise_estimate_ignores_object_pixels_left_outside_the_mask():
+    from torch_hsh.ps._common import prepare_inputs
+
+    """A partial mask (region of interest) must not turn unmasked object pixels into 'noise'."""
+    g = torch.Generator().manual_seed(21)
+    L, H, W = 16, 40, 40
+    n, l = _scene(400, L, 22)
+    img = torch.zeros(L, H, W, 3, dtype=DT)
+    obj = render(n, l, Lambertian(torch.full((400, 3), 0.7, dtype=DT))).reshape(L, 20, 20, 3)
+    img[:, 10:30, 10:30] = obj
+    ramp = torch.linspace(0.0, 0.05, W, dtype=DT)  # static, spatially varying dark background
+    sigma = 2e-3
+    img = img + ramp.view(1, 1, W, 1) + sigma * torch.randn(img.shape, generator=g, dtype=DT)
+    full = torch.zeros(H, W, dtype=torch.bool)
+    full[10:30, 10:30] = True
+    part = torch.zeros(H, W, dtype=torch.bool)
+    part[12:20, 12:20] = True
+    for m in (full, part):
+        d = prepare_inputs(img, l, mask=m)
+        _, info = ps.observation_weights(d.y, d.raw, d.background)
+        assert 0.7 * sigma < info["noise_sigma"] < 1.4 * sigma, info["noise_sigma"]

@@ -25,7 +25,8 @@ class PSInput:
         intensities: ``(L, C)``.
         mask: ``(*S)`` bool mask of the pixels in ``y``.
         pixel_shape: ``S``.
-        background: ``(Q, C)`` raw values outside the mask (for the noise estimate), may be empty.
+        background: ``(Q, C)`` temporal deviations (value minus the pixel's median over the lights) of the
+            dark pixels outside the mask, for the noise estimate; may be empty.
     """
 
     y: torch.Tensor
@@ -99,9 +100,35 @@ def prepare_inputs(
     flat = images.reshape(L, -1, C)
     m = mask_t.reshape(-1)
     raw = flat[:, m].transpose(0, 1).contiguous()  # (P, L, C)
-    bg = flat[:, ~m].reshape(-1, C)
+    bg = _dark_background(flat[:, ~m])
     y = raw / e.unsqueeze(0)
     return PSInput(y=y, raw=raw, lights=lights, intensities=e, mask=mask_t, pixel_shape=S, background=bg)
+
+
+def _dark_background(bg: torch.Tensor) -> torch.Tensor:
+    """Temporal deviations ``(Q, C)`` of the background pixels that are really background.
+
+    ``bg (L, Qp, C)``: every pixel outside the mask. A mask may leave parts of
+    the object outside (a region of interest, a random subset): their values
+    change with the light and would inflate the noise estimate. Kept: pixels
+    whose brightest value over all lights is at most 4x the 10th percentile of
+    that maximum over the background (true background is the darkest part of
+    the frame). Returned: each kept value minus its pixel's median over the
+    lights, so a static but spatially varying dark background (a table, a
+    wall) does not count as noise.
+    """
+    L, Qp, C = bg.shape
+    if Qp == 0:
+        return bg.reshape(-1, C)
+    fin = torch.where(torch.isfinite(bg), bg, torch.zeros_like(bg))
+    tmax = fin.abs().amax(dim=(0, 2))  # (Qp,)
+    sample = tmax if Qp <= 1_000_000 else tmax[torch.randperm(Qp, device=tmax.device)[:1_000_000]]
+    q10 = float(torch.quantile(sample.to(torch.float64), 0.1))
+    keep = tmax <= 4.0 * q10 + torch.finfo(tmax.dtype).tiny
+    sel = bg[:, keep]  # (L, Qk, C)
+    if L >= 3:
+        sel = sel - sel.nanmedian(dim=0, keepdim=True).values
+    return sel.reshape(-1, C)
 
 
 def scatter_pixels(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
