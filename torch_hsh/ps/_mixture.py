@@ -211,6 +211,34 @@ def solve_weights(Psi: torch.Tensor, w: torch.Tensor, y: torch.Tensor, rd: torch
     return small_solve(G, Pw @ y.transpose(1, 2)), Pw, G
 
 
+def fd_step(dtype: torch.dtype) -> float:
+    """Forward-difference step of the design derivatives (relative error ~h in float64, rounding-limited in float32)."""
+    return 1e-6 if dtype == torch.float64 else 3e-3
+
+
+def cauchy_weights(res: torch.Tensor, w0: torch.Tensor, scale: float, c: float) -> torch.Tensor:
+    """Cauchy IRLS weights ``w0 / (1 + (res / (c scale))^2)``."""
+    return w0 / (1.0 + (res / (c * scale)) ** 2)
+
+
+def observation_residual(Psi: torch.Tensor, W: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """RMS over the channels of ``y - W^T Psi``, ``(p, L)``."""
+    return (y - combine(W, Psi)).pow(2).mean(1).sqrt()
+
+
+def irls_weights(Psi, y, w, w0, scale: float, c: float, passes: int, ridge_rel: float = 1e-4):
+    """``passes`` Cauchy reweighting steps at a fixed design: closed-form mixing weights, residuals, new weights.
+
+    Returns the weights and the residuals of the last pass (``None`` for ``passes = 0``).
+    """
+    res = None
+    for _ in range(passes):
+        W, _, _ = solve_weights(Psi, w, y, _ridge_diag(Psi, w, ridge_rel))
+        res = observation_residual(Psi, W, y)
+        w = cauchy_weights(res, w0, scale, c)
+    return w, res
+
+
 def reduced_cost(Psi, w, y, rd):
     W, _, _ = solve_weights(Psi, w, y, rd)
     e = y - combine(W, Psi)

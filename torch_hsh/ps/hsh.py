@@ -49,7 +49,18 @@ from functools import lru_cache
 from ..basis import _polar_consts, _polar_table, _polar_table_t, _safe_s, isotropic_indices, num_isotropic
 from ..render import render_coefficients
 from ._common import prepare_inputs, robust_sigma, scatter_pixels, tangent_frame
-from ._mixture import MixedDesign, _ridge_diag, combine, lm_normals, reduced_cost, solve_weights
+from ._mixture import (
+    MixedDesign,
+    _ridge_diag,
+    _t_scatter,
+    cauchy_weights,
+    fd_step,
+    irls_weights,
+    lm_normals,
+    observation_residual,
+    reduced_cost,
+    solve_weights,
+)
 from .lambertian import _solve_flat, trimmed_weights
 
 __all__ = [
@@ -323,7 +334,7 @@ class _Chunk:
         # dPhi along both tangents by forward differences of the (cheap, smooth)
         # factorised design: ~1e-6 relative error in float64 (h = 1e-6), plenty
         # for LM and several times faster than forward-mode AD through the kernel
-        h = 1e-6 if n.dtype == torch.float64 else 3e-3
+        h = fd_step(n.dtype)
         stack = torch.cat([n, n + h * t1, n + h * t2])
         D = self.design(stack).reshape(3, q, *self.y.shape[1:2], -1)
         Phi = D[0]
@@ -360,14 +371,8 @@ def _factor_tables(order: int):
     qcol = [0] * U
     for (nn, m), c in col.items():
         qcol[c] = m
-    rows, cols_k, src, coef = [], [], [], []
-    for k, (p, r, q) in enumerate(isotropic_indices(order).tolist()):
-        c = 0.5 if p == r else 1.0 / math.sqrt(2.0)
-        # T[u=(p,q), k] += c R(r,q)(zo);  T[u=(r,q), k] += c R(p,q)(zo)
-        rows += [col[(p, q)], col[(r, q)]]
-        cols_k += [k, k]
-        src += [col[(r, q)], col[(p, q)]]
-        coef += [c, c]
+    # T[u=(p,q), k] += c R(r,q)(zo);  T[u=(r,q), k] += c R(p,q)(zo)
+    rows, cols_k, src, coef = _t_scatter(order)
     return U, qcol, rows, cols_k, src, coef
 
 
@@ -453,6 +458,22 @@ def _cone_candidates(n0: torch.Tensor, angles_deg: Sequence[float], azimuths: in
             d = math.cos(phi) * t1 + math.sin(phi) * t2
             out.append(math.cos(a) * n0 + math.sin(a) * d)
     return out
+
+
+def _cone_search(n: torch.Tensor, cost, angles_deg: Sequence[float], azimuths: int, base_cost=None):
+    """Per pixel, the lowest-``cost`` normal among ``n`` and a cone of candidates around it.
+
+    ``cost`` maps normals ``(p, 3)`` to ``(p,)``; ``base_cost`` is ``cost(n)`` if already known.
+    """
+    if len(angles_deg) == 0 or azimuths <= 0:
+        return n
+    best = cost(n) if base_cost is None else base_cost
+    for cand in _cone_candidates(n, angles_deg, azimuths):
+        cc = cost(cand)
+        better = cc < best
+        n = torch.where(better.unsqueeze(-1), cand, n)
+        best = torch.where(better, cc, best)
+    return n
 
 
 def observation_weights(
@@ -560,9 +581,8 @@ def _final_coefficients(ch: _Chunk, n, nonneg: bool, prior=None, gamma: float = 
 # ---------------------------------------------------------------------------
 # Shared-material model (default): a_pc = sum_m W_pcm B_m
 # ---------------------------------------------------------------------------
-# Iteration budgets of the shared model (not tuned per dataset). The robust
-# scale is re-estimated (1.4826 x median residual) at every IRLS pass, so the
-# calibration anneals it; see docs/photometric_stereo.md for the sensitivity.
+# Iteration budgets of the shared model (fixed, not set per dataset; see
+# docs/photometric_stereo.md for how much the results depend on them).
 _INDEPENDENT_START_ITERS = 8  # LM iterations of the independent-model start on the subset
 _CAL_IRLS = 5  # IRLS passes (+1) per calibration round
 _CAL_LM_ITERS = 4  # LM iterations of the subset normals per calibration round
@@ -600,10 +620,6 @@ def _fit_basis_brdfs(Phi, w, y, W, order, ridge_rel):
     return B / torch.where(nb > 0, nb, torch.ones_like(nb))
 
 
-def _cauchy(res, w0, scale, c):
-    return w0 / (1.0 + (res / (c * scale)) ** 2)
-
-
 def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge=_BASIS_RIDGE, weight_ridge=1e-4):
     """Alternate (basis BRDFs, mixing weights, robust weights) and the normals on a pixel subset.
 
@@ -626,12 +642,12 @@ def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge
             rd = _ridge_diag(Psi, w0, weight_ridge)
             Wt, _, _ = solve_weights(Psi, w, yT, rd)  # (p, M, C)
             W = Wt.transpose(1, 2)
-            res = (yT - combine(Wt, Psi)).pow(2).mean(1).sqrt()
+            res = observation_residual(Psi, Wt, yT)
             if rnd < _SCALE_ROUNDS:
                 live = res[w0 > 0]
                 scale = max(float(1.4826 * live.median()) if live.numel() else 1.0, 1e-12)
-            w = _cauchy(res, w0, scale, c)
-        n, _ = lm_normals(MixedDesign(B, lights, order), yT, w, rd, n, lm_iter, 1e-6 if y.dtype == torch.float64 else 3e-3)
+            w = cauchy_weights(res, w0, scale, c)
+        n, _ = lm_normals(MixedDesign(B, lights, order), yT, w, rd, n, lm_iter, fd_step(y.dtype))
     return B, scale, n
 
 
@@ -651,14 +667,7 @@ def _independent_chunk(y, w0, n, lights, view, order, profile, ridge, robust, ro
         # before the normal moves
         for _ in range(robust_iters + 1):
             ch.set_weights(_robust_weights(ch, n, w0, floor))
-    # coarse search over a cone of candidates
-    if len(search_angles) > 0 and search_azimuths > 0:
-        best = ch.cost(n)
-        for cand in _cone_candidates(n, search_angles, search_azimuths):
-            cc = ch.cost(cand)
-            better = cc < best
-            n = torch.where(better.unsqueeze(-1), cand, n)
-            best = torch.where(better, cc, best)
+    n = _cone_search(n, ch.cost, search_angles, search_azimuths)  # coarse search over a cone of candidates
     n, _, k = _lm(ch, n, max_iter)
     iters += k
     if robust:
@@ -683,17 +692,9 @@ def _refine_normals_mixed(B, y, w0, n, lights, order, scale, c, iters, irls, sea
     out_dt = y.dtype
     des = MixedDesign(B.to(work_dtype), lights.to(work_dtype), order)
     yd, w0d, nd = y.to(work_dtype).transpose(1, 2).contiguous(), w0.to(work_dtype), n.to(work_dtype)  # yd (p, C, L)
-    h = 1e-6 if work_dtype == torch.float64 else 3e-3
+    h = fd_step(work_dtype)
     Psi = des(nd)
     w = w0d.clone()
-
-    def reweight(Psi, w, yy, ww0):
-        for _ in range(irls):
-            rd = _ridge_diag(Psi, w, 1e-4)
-            Wt, _, _ = solve_weights(Psi, w, yy, rd)
-            res = (yy - combine(Wt, Psi)).pow(2).mean(1).sqrt()
-            w = _cauchy(res, ww0, scale, c)
-        return w
 
     active = torch.ones(nd.shape[0], dtype=torch.bool, device=nd.device)
     used = 0
@@ -703,15 +704,13 @@ def _refine_normals_mixed(B, y, w0, n, lights, order, scale, c, iters, irls, sea
             break
         used += 1
         yi, ni, Pi = yd[idx], nd[idx], Psi[idx]
-        wi = reweight(Pi, w[idx], yi, w0d[idx])
+        wi, _ = irls_weights(Pi, yi, w[idx], w0d[idx], scale, c, irls)
         rd = _ridge_diag(Pi, wi, 1e-4)
-        if it == 0 and len(search_angles) > 0 and search_azimuths > 0:
-            best, _ = reduced_cost(Pi, wi, yi, rd)
-            for cand in _cone_candidates(ni, search_angles, search_azimuths):
-                cc, _ = reduced_cost(des(cand), wi, yi, rd)
-                better = cc < best
-                ni = torch.where(better.unsqueeze(-1), cand, ni)
-                best = torch.where(better, cc, best)
+        if it == 0:
+            ni = _cone_search(
+                ni, lambda m: reduced_cost(des(m), wi, yi, rd)[0], search_angles, search_azimuths,
+                base_cost=reduced_cost(Pi, wi, yi, rd)[0],
+            )
         n_new, _ = lm_normals(des, yi, wi, rd, ni, 1, h)
         step = (n_new - nd[idx]).norm(dim=-1)
         nd[idx] = n_new
@@ -719,10 +718,69 @@ def _refine_normals_mixed(B, y, w0, n, lights, order, scale, c, iters, irls, sea
         w[idx] = wi
         if it >= 2:
             active[idx[step < step_tol]] = False
-    w = reweight(Psi, w, yd, w0d)
+    w, _ = irls_weights(Psi, yd, w, w0d, scale, c, irls)
     rd = _ridge_diag(Psi, w, 1e-4)
     Wt, _, _ = solve_weights(Psi, w, yd, rd)
     return nd.to(out_dt), w.to(out_dt), Wt.to(out_dt), used
+
+
+def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y, n_pixels, rounds, starts, seed,
+                      work_dtype, c, progress, info):
+    """Calibrate the shared basis BRDFs on a seeded random subset of ``n_pixels`` pixels.
+
+    The alternation (:func:`_calibrate`) keeps the basin it starts in, so it
+    runs from the robust Lambertian normals and, if ``"independent"`` is in
+    ``starts``, from the independent-model normals on the subset (exact
+    azimuth, biased elevation). The winner has the smallest Cauchy loss of the
+    subset residuals at a common scale (the smaller of the scales): the scale
+    alone would reward a basis bent to biased normals. Writes
+    ``calibration_start`` / ``calibration_losses`` into ``info``.
+
+    Returns ``B (M, K)``, the robust scale, the subset indices and their normals.
+    """
+    dt, dev = y.dtype, y.device
+    usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
+    if usable.numel() == 0:
+        usable = torch.arange(y.shape[0], device=dev)
+    g = torch.Generator().manual_seed(int(seed))
+    S = usable[torch.randperm(usable.numel(), generator=g)[:n_pixels].to(dev)]
+    yS, w0S = y[S], w0[S]
+    _, alb = _solve_flat(yS, lights, trimmed_weights(yS, 0.25, 0.10))
+    W0 = _initial_mixing(alb, M, seed)
+    starts_S = [n_start[S]]
+    if "independent" in starts:
+        view = torch.tensor([0.0, 0.0, 1.0], dtype=work_dtype, device=dev)
+        n_ind, _, _ = _independent_chunk(
+            yS.to(work_dtype), w0S.to(work_dtype), n_start[S].to(work_dtype), lights.to(work_dtype), view, order,
+            profile.to(work_dtype), ridge, True, 1, (), 0, _INDEPENDENT_START_ITERS, sigma_y,
+        )
+        starts_S.append(torch.nn.functional.normalize(n_ind.to(dt), dim=-1))
+    it_starts = list(enumerate(starts_S))
+    if progress:
+        from tqdm.auto import tqdm
+
+        it_starts = tqdm(it_starts, desc="HSH calibration (basis BRDFs)", unit="start")
+    cands = []
+    for k_s, nS0 in it_starts:
+        # in the work dtype (the (M K, M K) basis solve is always float64)
+        B_k, scale_k, n_k = _calibrate(
+            yS.to(work_dtype), w0S.to(work_dtype), nS0.to(work_dtype), lights.to(work_dtype), order,
+            W0.to(work_dtype), rounds, _CAL_IRLS, _CAL_LM_ITERS, c,
+        )
+        cands.append((B_k.to(dt), scale_k, k_s, n_k.to(dt)))
+    sig = min(t[1] for t in cands)
+    yT = yS.transpose(1, 2)
+    losses = []
+    for B_k, _, _, n_k in cands:
+        X, T = _design_factors(n_k, lights, order)
+        Psi = (X @ (T @ B_k.T)).transpose(1, 2)
+        _, res = irls_weights(Psi, yT, w0S.clone(), w0S, sig, c, 3)
+        losses.append(float((w0S * torch.log1p((res / (c * sig)) ** 2)).sum()))
+    i_best = min(range(len(cands)), key=lambda i: losses[i])
+    B, scale, chosen, n_cal = cands[i_best]
+    info["calibration_losses"] = losses
+    info["calibration_start"] = float(chosen)
+    return B, scale, S, torch.nn.functional.normalize(n_cal, dim=-1)
 
 
 # ---------------------------------------------------------------------------
@@ -888,61 +946,13 @@ def solve_hsh(
     if materials is not None:
         # --- calibration of the shared basis BRDFs on a random pixel subset
         with torch.no_grad():
-            usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
-            if usable.numel() == 0:
-                usable = torch.arange(P, device=dev)
-            g = torch.Generator().manual_seed(int(seed))
-            S = usable[torch.randperm(usable.numel(), generator=g)[: int(calibration_pixels)].to(dev)]
-            _, alb = _solve_flat(d.y[S], d.lights, trimmed_weights(d.y[S], 0.25, 0.10))
-            W0 = _initial_mixing(alb, materials, seed)
-            # candidate starts of the alternation: the robust Lambertian normals and
-            # the independent-BRDF normals (exact azimuth, biased elevation); the
-            # alternation keeps the basin it starts in, so both are run and the
-            # one explaining the data best (smallest robust residual scale) wins
-            starts_S = [n_start[S]]
-            if "independent" in calibration_starts:
-                n_ind, _, _ = _independent_chunk(
-                    d.y[S].to(wdt), w0[S].to(wdt), n_start[S].to(wdt), d.lights.to(wdt), view.to(wdt), order,
-                    profile.to(wdt), ridge, True, 1, (), 0, _INDEPENDENT_START_ITERS, sigma_y,
-                )
-                n_ind = torch.nn.functional.normalize(n_ind.to(dt), dim=-1)
-                starts_S.append(n_ind)
-            cands = []
-            it_starts = list(enumerate(starts_S))
-            if progress:
-                from tqdm.auto import tqdm
-
-                it_starts = tqdm(it_starts, desc="HSH calibration (basis BRDFs)", unit="start")
-            for k_s, nS0 in it_starts:
-                cdt = wdt  # calibration in the work dtype (its (MK, MK) basis solve is always float64)
-                B_k, scale_k, n_k = _calibrate(
-                    d.y[S].to(cdt), w0[S].to(cdt), nS0.to(cdt), d.lights.to(cdt), order, W0.to(cdt),
-                    int(calibration_rounds), _CAL_IRLS, _CAL_LM_ITERS, c_cauchy,
-                )
-                cands.append((B_k.to(dt), scale_k, k_s, n_k.to(dt)))
-            # compare the calibrations by one objective: the Cauchy loss of the
-            # subset residuals at a common scale (the smaller of the two); the
-            # scale alone would reward a fit that bends the basis to biased normals
-            sig = min(t[1] for t in cands)
-            losses = []
-            for B_k, scale_k, k_s, n_k in cands:
-                X, T = _design_factors(n_k, d.lights, order)
-                Psi = (X @ (T @ B_k.T)).transpose(1, 2)
-                yT = d.y[S].transpose(1, 2)
-                w_k = w0[S].clone()
-                for _ in range(3):
-                    rd = _ridge_diag(Psi, w_k, 1e-4)
-                    Wt, _, _ = solve_weights(Psi, w_k, yT, rd)
-                    res = (yT - combine(Wt, Psi)).pow(2).mean(1).sqrt()
-                    w_k = _cauchy(res, w0[S], sig, c_cauchy)
-                losses.append(float((w0[S] * torch.log1p((res / (c_cauchy * sig)) ** 2)).sum()))
-            info["calibration_losses"] = losses
-            i_best = min(range(len(cands)), key=lambda i: losses[i])
-            B, scale, chosen, n_cal = cands[i_best]
+            B, scale, S, n_cal = _calibrate_shared(
+                d.y, d.lights, w0, n_start, order, materials, profile, ridge, sigma_y, int(calibration_pixels),
+                int(calibration_rounds), calibration_starts, seed, wdt, c_cauchy, progress, info,
+            )
             # the calibrated subset normals are the best start the per-pixel pass has for them
             n_start = n_start.clone()
-            n_start[S] = torch.nn.functional.normalize(n_cal.to(dt), dim=-1)
-            info["calibration_start"] = float(chosen)
+            n_start[S] = n_cal
             # floor: the noise level, and 1e-4 of the typical brightness (quantisation,
             # float32 rounding) so that noise-free data do not get a zero scale
             yv = d.y.mean(-1)[w0 > 0]
