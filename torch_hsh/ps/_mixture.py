@@ -117,15 +117,12 @@ class MixedDesign:
         self.Q = mixed_design_matrix(B, order)
         self.deg = [order + 1 - q for q in range(order + 1)]
 
-    def __call__(self, n: torch.Tensor, lights: torch.Tensor = None) -> torch.Tensor:
+    def __call__(self, n: torch.Tensor) -> torch.Tensor:
         P = self.order
         M = self.M
         nrm = torch.nn.functional.normalize(n, dim=-1)
-        if lights is None:
-            lt, lz = self.lights_t, self.lz
-        else:
-            lt, lz = lights.T, lights[:, 2]
-        zi = nrm @ lt  # (p, L)
+        lz = self.lz
+        zi = nrm @ self.lights_t  # (p, L)
         zo = nrm[:, 2]
         zi_c = zi.clamp(0.0, 1.0)
         zo_c = zo.clamp(0.0, 1.0)
