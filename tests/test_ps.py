@@ -205,8 +205,8 @@ def test_bad_inputs_give_clear_errors():
 def test_mixed_design_matches_factorised_design(order):
     """Horner evaluation of Psi = Phi B^T equals the explicit design (incl. below-horizon normals)."""
     from torch_hsh.basis import num_isotropic
-    from torch_hsh.ps._mixture import MixedDesign
-    from torch_hsh.ps.hsh import _design_factors
+    from torch_hsh.ps.design import MixedDesign
+    from torch_hsh.ps.design import _design_factors
 
     g = torch.Generator().manual_seed(order)
     n = torch.nn.functional.normalize(torch.randn(200, 3, generator=g, dtype=DT) + torch.tensor([0.0, 0.0, 1.2], dtype=DT), dim=-1)
@@ -236,7 +236,7 @@ def test_materials_argument_is_validated():
 
 
 def test_noise_estimate_ignores_object_pixels_left_outside_the_mask():
-    from torch_hsh.ps._common import prepare_inputs
+    from torch_hsh.ps.observations import prepare_inputs
 
     """A partial mask (region of interest) must not turn unmasked object pixels into 'noise'."""
     g = torch.Generator().manual_seed(21)

@@ -2,10 +2,16 @@
 
 * :func:`lambertian_ls` — Woodham least squares.
 * :func:`robust_lambertian` — trimmed least squares (drop darkest 25 %, brightest 10 % by default).
-* :func:`solve_hsh` — per-pixel normal + isotropic Helmholtz BRDF coefficients (variable projection,
-  Levenberg–Marquardt, coarse cone search, adaptive shadow/saturation handling).
+* :func:`solve_hsh` — normals + isotropic Helmholtz BRDF coefficients per pixel, with a few basis
+  BRDFs shared by the object (default) or independent BRDFs per pixel.
 * :func:`holdout_evaluation` — fit on a subset of the lights, relighting error on the rest.
 * :func:`angular_error` — per-pixel angular error in degrees.
+
+The HSH solver is a pipeline of stages, one module each (see :mod:`torch_hsh.ps.hsh`):
+:mod:`~torch_hsh.ps.observations` → :mod:`~torch_hsh.ps.initialisation` →
+:mod:`~torch_hsh.ps.calibration` → :mod:`~torch_hsh.ps.refinement` →
+:mod:`~torch_hsh.ps.coefficients` → :mod:`~torch_hsh.ps.result`; the forward model is in
+:mod:`~torch_hsh.ps.design` and the numerical kernels in :mod:`~torch_hsh.ps.optim`.
 
 Inputs everywhere: ``images (L, H, W, C)`` or ``(L, P, C)``, ``lights (L, 3)`` in the DiLiGenT frame
 (x right, y up, z toward the camera), optional ``intensities (L,)``/``(L, C)`` and ``mask (H, W)``.
@@ -15,17 +21,11 @@ Example:
     >>> res = ps.solve_hsh(images, lights, mask=mask)  # doctest: +SKIP
 """
 from ._common import angular_error
-from .hsh import (
-    DEFAULT_MATERIALS,
-    DEFAULT_ORDER,
-    HoldoutResult,
-    HSHResult,
-    directional_albedo_view,
-    holdout_evaluation,
-    observation_weights,
-    solve_hsh,
-)
+from .hsh import solve_hsh
 from .lambertian import LambertianResult, lambertian_ls, robust_lambertian, trimmed_weights
+from .observations import observation_weights
+from .result import HoldoutResult, HSHResult, directional_albedo_view, holdout_evaluation
+from .settings import DEFAULT_MATERIALS, DEFAULT_ORDER
 
 __all__ = [
     "DEFAULT_MATERIALS",

@@ -19,7 +19,8 @@ from typing import Optional
 
 import torch
 
-from ._common import prepare_inputs, scatter_pixels
+from ._common import scatter_pixels
+from .observations import prepare_inputs
 
 __all__ = ["LambertianResult", "lambertian_ls", "robust_lambertian", "trimmed_weights"]
 

@@ -1,0 +1,209 @@
+"""Stage 3 of the HSH solver (shared model): calibration of the shared basis BRDFs.
+
+Takes the :class:`~torch_hsh.ps.observations.Observations` and the start
+normals; returns a :class:`Calibration`: ``M`` unit-norm basis BRDFs ``B (M,
+K)`` (isotropic Helmholtz coefficients), the robust residual scale, the
+pixel subset used and its calibrated normals.
+
+Method: on a seeded random subset of pixels, alternate Cauchy-IRLS fits of the
+basis and the per-pixel mixing weights with variable-projection LM on the
+normals (:func:`_calibrate`), from the robust Lambertian normals and
+optionally from the independent model's normals on the subset; keep the
+calibration with the smallest Cauchy loss at a common scale.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .design import MixedDesign, _design_factors, ridge_profile
+from .lambertian import _solve_flat, trimmed_weights
+from .optim import (
+    _ridge_diag,
+    cauchy_weights,
+    fd_step,
+    irls_weights,
+    lm_normals,
+    observation_residual,
+    solve_weights,
+)
+from .observations import Observations
+from .refinement import refine_independent_chunk
+from .settings import Settings
+
+__all__ = ["Calibration", "calibrate"]
+
+# Iteration budgets of the shared model (fixed, not set per dataset; see
+# docs/photometric_stereo.md for how much the results depend on them).
+_INDEPENDENT_START_ITERS = 8  # LM iterations of the independent-model start on the subset
+_CAL_IRLS = 5  # IRLS passes (+1) per calibration round
+_CAL_LM_ITERS = 4  # LM iterations of the subset normals per calibration round
+_SCALE_ROUNDS = 3  # calibration rounds that re-estimate the robust scale; later rounds keep it (MM-style)
+_BASIS_RIDGE = 1e-3  # relative ridge (times the order profile) on the basis BRDFs
+
+
+def _initial_mixing(albedo: torch.Tensor, M: int, seed: int) -> torch.Tensor:
+    """Start mixing weights ``(p, C, M)``: per-channel albedo, its grey level, then seeded positive perturbations."""
+    cols = [albedo]
+    if M >= 2:
+        cols.append(albedo.mean(-1, keepdim=True).expand_as(albedo))
+    g = torch.Generator().manual_seed(int(seed))
+    for _ in range(2, M):
+        f = 0.5 + torch.rand(albedo.shape[0], 1, generator=g, dtype=torch.float64).to(albedo)
+        cols.append(albedo * f)
+    return torch.stack(cols, dim=-1)
+
+
+def _fit_basis_brdfs(Phi, w, y, W, order, ridge_rel):
+    """Shared basis BRDFs ``B (M, K)`` (unit rows) by weighted ridge LS over all pixels and channels."""
+    M, K = W.shape[-1], Phi.shape[-1]
+    Pw = Phi * w.unsqueeze(-1)
+    G = Pw.transpose(1, 2) @ Phi
+    A = torch.einsum("pcm,pcn,pkl->mknl", W, W, G).reshape(M * K, M * K)
+    r = torch.einsum("pcm,pkc->mk", W, Pw.transpose(1, 2) @ y).reshape(-1)
+    # the (M K, M K) system is tiny: solve it in float64 whatever the work dtype
+    A, r = A.double(), r.double()
+    prof = ridge_profile(order, torch.float64, y.device).repeat(M)
+    tr = A.diagonal().mean().clamp(min=1e-300)
+    A = A + torch.diag(ridge_rel * tr * prof) + 1e-12 * tr * torch.eye(M * K, dtype=A.dtype, device=A.device)
+    B = torch.linalg.solve(A, r).reshape(M, K).to(y.dtype)
+    nb = B.norm(dim=-1, keepdim=True)
+    return B / torch.where(nb > 0, nb, torch.ones_like(nb))
+
+
+def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge=_BASIS_RIDGE, weight_ridge=1e-4):
+    """Alternate (basis BRDFs, mixing weights, robust weights) and the normals on a pixel subset.
+
+    Every round: ``irls + 1`` Cauchy-IRLS passes of (fit ``B`` over all
+    pixels and channels, closed-form mixing weights, robust weights) at fixed
+    normals, then ``lm_iter`` variable-projection LM iterations of the normals
+    at fixed ``B`` and weights. Returns ``B (M, K)``, the robust residual scale
+    and the subset normals.
+    """
+    w = w0.clone()
+    scale = None
+    B = None
+    yT = y.transpose(1, 2).contiguous()  # (p, C, L): the layout of the mixed design
+    for rnd in range(rounds):
+        X, T = _design_factors(n, lights, order)
+        Phi = X @ T
+        for _ in range(irls + 1):
+            B = _fit_basis_brdfs(Phi, w, y, W, order, basis_ridge)
+            Psi = (Phi @ B.T).transpose(1, 2).contiguous()  # (p, M, L)
+            rd = _ridge_diag(Psi, w0, weight_ridge)
+            Wt, _, _ = solve_weights(Psi, w, yT, rd)  # (p, M, C)
+            W = Wt.transpose(1, 2)
+            res = observation_residual(Psi, Wt, yT)
+            if rnd < _SCALE_ROUNDS:
+                live = res[w0 > 0]
+                scale = max(float(1.4826 * live.median()) if live.numel() else 1.0, 1e-12)
+            w = cauchy_weights(res, w0, scale, c)
+        n, _ = lm_normals(MixedDesign(B, lights, order), yT, w, rd, n, lm_iter, fd_step(y.dtype))
+    return B, scale, n
+
+
+def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y, n_pixels, rounds, starts, seed,
+                      work_dtype, c, progress, info):
+    """Calibrate the shared basis BRDFs on a seeded random subset of ``n_pixels`` pixels.
+
+    The alternation (:func:`_calibrate`) keeps the basin it starts in, so it
+    runs from the robust Lambertian normals and, if ``"independent"`` is in
+    ``starts``, from the independent-model normals on the subset (exact
+    azimuth, biased elevation). The winner has the smallest Cauchy loss of the
+    subset residuals at a common scale (the smaller of the scales): the scale
+    alone would reward a basis bent to biased normals. Writes
+    ``calibration_start`` / ``calibration_losses`` into ``info``.
+
+    Returns ``B (M, K)``, the robust scale, the subset indices and their normals.
+    """
+    dt, dev = y.dtype, y.device
+    usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
+    if usable.numel() == 0:
+        usable = torch.arange(y.shape[0], device=dev)
+    g = torch.Generator().manual_seed(int(seed))
+    S = usable[torch.randperm(usable.numel(), generator=g)[:n_pixels].to(dev)]
+    yS, w0S = y[S], w0[S]
+    _, alb = _solve_flat(yS, lights, trimmed_weights(yS, 0.25, 0.10))
+    W0 = _initial_mixing(alb, M, seed)
+    starts_S = [n_start[S]]
+    if "independent" in starts:
+        view = torch.tensor([0.0, 0.0, 1.0], dtype=work_dtype, device=dev)
+        n_ind, _, _ = refine_independent_chunk(
+            yS.to(work_dtype), w0S.to(work_dtype), n_start[S].to(work_dtype), lights.to(work_dtype), view, order,
+            profile.to(work_dtype), ridge, True, 1, (), 0, _INDEPENDENT_START_ITERS, sigma_y,
+        )
+        starts_S.append(torch.nn.functional.normalize(n_ind.to(dt), dim=-1))
+    it_starts = list(enumerate(starts_S))
+    if progress:
+        from tqdm.auto import tqdm
+
+        it_starts = tqdm(it_starts, desc="HSH calibration (basis BRDFs)", unit="start")
+    cands = []
+    for k_s, nS0 in it_starts:
+        # in the work dtype (the (M K, M K) basis solve is always float64)
+        B_k, scale_k, n_k = _calibrate(
+            yS.to(work_dtype), w0S.to(work_dtype), nS0.to(work_dtype), lights.to(work_dtype), order,
+            W0.to(work_dtype), rounds, _CAL_IRLS, _CAL_LM_ITERS, c,
+        )
+        cands.append((B_k.to(dt), scale_k, k_s, n_k.to(dt)))
+    sig = min(t[1] for t in cands)
+    yT = yS.transpose(1, 2)
+    losses = []
+    for B_k, _, _, n_k in cands:
+        X, T = _design_factors(n_k, lights, order)
+        Psi = (X @ (T @ B_k.T)).transpose(1, 2)
+        _, res = irls_weights(Psi, yT, w0S.clone(), w0S, sig, c, 3)
+        losses.append(float((w0S * torch.log1p((res / (c * sig)) ** 2)).sum()))
+    i_best = min(range(len(cands)), key=lambda i: losses[i])
+    B, scale, chosen, n_cal = cands[i_best]
+    info["calibration_losses"] = losses
+    info["calibration_start"] = float(chosen)
+    return B, scale, S, torch.nn.functional.normalize(n_cal, dim=-1)
+
+
+@dataclass
+class Calibration:
+    """State after stage 3 (shared model).
+
+    Attributes:
+        basis: ``(M, K)`` unit-norm basis BRDFs (isotropic Helmholtz coefficients).
+        scale: robust residual scale of the Cauchy weights (floored at the noise
+            level and at 1e-4 of the typical brightness).
+        subset: ``(S,)`` indices of the calibration pixels.
+        subset_normals: ``(S, 3)`` their calibrated normals.
+    """
+
+    basis: torch.Tensor
+    scale: float
+    subset: torch.Tensor
+    subset_normals: torch.Tensor
+
+    def start_normals(self, n_start: torch.Tensor) -> torch.Tensor:
+        """``n_start`` with the calibrated subset normals put in (the best start the per-pixel pass has for them)."""
+        n = n_start.clone()
+        n[self.subset] = self.subset_normals
+        return n
+
+
+def calibrate(obs: Observations, n_start: torch.Tensor, cfg: Settings) -> Calibration:
+    """Stage 3: calibrate ``cfg.materials`` shared basis BRDFs; writes its diagnostics into ``obs.info``."""
+    d, w0, info = obs.data, obs.weights, obs.info
+    dt = d.y.dtype
+    wdt = dt if cfg.work_dtype is None else cfg.work_dtype
+    profile = ridge_profile(cfg.order, dt, d.y.device)
+    with torch.no_grad():
+        B, scale, S, n_cal = _calibrate_shared(
+            d.y, d.lights, w0, n_start, cfg.order, cfg.materials, profile, cfg.ridge, obs.sigma_y,
+            cfg.calibration_pixels, cfg.calibration_rounds, cfg.calibration_starts, cfg.seed, wdt, cfg.cauchy_c,
+            cfg.progress, info,
+        )
+        # floor: the noise level, and 1e-4 of the typical brightness (quantisation,
+        # float32 rounding) so that noise-free data do not get a zero scale
+        yv = d.y.mean(-1)[w0 > 0]
+        typical = float(yv.abs().median()) if yv.numel() else 1.0
+        scale = max(scale, 3.0 * obs.sigma_y, 1e-4 * typical, 1e-12)
+    info["materials"] = float(cfg.materials)
+    info["robust_scale"] = scale
+    info["calibration_pixels"] = float(S.numel())
+    return Calibration(basis=B, scale=scale, subset=S, subset_normals=n_cal)

@@ -1,0 +1,104 @@
+"""Stage 5 of the HSH solver: final coefficients with the non-negativity safeguard.
+
+Takes the observations and the refined normals; returns per-pixel isotropic
+Helmholtz coefficients ``(P, C, K)`` (ridge least squares; for the shared
+model shrunk toward the mix of the basis BRDFs and fitted to every valid
+observation) and the weighted RMS residual. The safeguard penalises the
+rendered BRDF where it is negative at the lights and at a fixed hemisphere of
+virtual lights.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from .design import ridge_profile
+from .observations import Observations
+from .optim import PixelProblem
+from .refinement import Refinement
+from .settings import Settings
+
+__all__ = ["Coefficients", "fit_coefficients", "final_coefficients"]
+
+
+
+def _hemisphere_dirs(n: int, dtype, device) -> torch.Tensor:
+    """Fibonacci set of ``n`` unit directions with z in (0, 1)."""
+    i = torch.arange(n, dtype=dtype, device=device) + 0.5
+    z = 1.0 - i / n
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    s = torch.sqrt((1 - z * z).clamp(min=0))
+    return torch.stack([s * torch.cos(phi), s * torch.sin(phi), z], dim=-1)
+
+
+def final_coefficients(ch: PixelProblem, n, nonneg: bool, prior=None, gamma: float = 10.0, iters: int = 4, virtual: int = 48,
+                        Phi=None):
+    """Per-pixel ridge coefficients ``(p, K, C)``, shrunk toward ``prior`` (default 0), with the non-negativity safeguard."""
+    Phi = ch.design(n) if Phi is None else Phi
+    a0 = torch.zeros(Phi.shape[0], Phi.shape[-1], ch.y.shape[-1], dtype=Phi.dtype, device=Phi.device) if prior is None else prior
+    a = a0 + ch.solve(Phi, ch.w, ch.ridge_diag, ch.y - Phi @ a0)
+    if not nonneg:
+        return a
+    vdirs = _hemisphere_dirs(virtual, n.dtype, n.device)
+    Pv = ch.design(n, vdirs)  # (p, V, K)
+    Pall = torch.cat([Phi, Pv], dim=1)
+    Wv = Pall.new_zeros(Pall.shape[:2])
+    scale = ch.w.sum(-1, keepdim=True).clamp(min=1.0) / Pall.shape[1]
+    for _ in range(iters):
+        pred = Pall @ a  # (p, L+V, C)
+        neg = (pred < 0).any(-1)
+        new = neg & (Wv == 0)
+        if not bool(new.any()):
+            break
+        Wv = torch.where(neg, gamma * scale.expand_as(Wv), Wv)
+        extra = (Pall * Wv.unsqueeze(-1)).transpose(1, 2) @ Pall
+        # minimise |sqrt(w)(y - Phi a)|^2 + |sqrt(ridge)(a - a0)|^2 + |sqrt(Wv) Pall a|^2
+        a = a0 + ch.solve(Phi, ch.w, ch.ridge_diag, ch.y - Phi @ a0, extra=extra, rhs_extra=-(extra @ a0))
+    return a
+
+
+@dataclass
+class Coefficients:
+    """State after stage 5: ``coefficients (P, C, K)`` and the weighted RMS ``residual (P,)`` of their fit."""
+
+    coefficients: torch.Tensor
+    residual: torch.Tensor
+
+
+def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
+                     basis: Optional[torch.Tensor] = None) -> Coefficients:
+    """Stage 5: final per-pixel coefficients at the refined normals, in chunks of ``cfg.chunk_size`` pixels.
+
+    Shared model (``basis (M, K)`` given): ridge-shrunk toward the mix
+    ``basis^T W`` of the refined mixing weights, ridge scaled at the final
+    normals. Independent model: shrunk toward 0 with the refinement's ridge.
+    """
+    d = obs.data
+    P, L, C = d.y.shape
+    dev, dt = d.y.device, d.y.dtype
+    K = ridge_profile(cfg.order, dt, dev).shape[0]
+    view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
+    profile = ridge_profile(cfg.order, dt, dev)
+    coefs = torch.empty(P, C, K, dtype=dt, device=dev)
+    resid = torch.empty(P, dtype=dt, device=dev)
+    with torch.no_grad():
+        for s in range(0, P, cfg.chunk_size):
+            sl = slice(s, min(P, s + cfg.chunk_size))
+            n = ref.normals[sl]
+            ch = PixelProblem(d.y[sl], ref.fit_weights[sl], d.lights, view, cfg.order, profile, cfg.ridge)
+            Phi = ch.design(n)
+            if basis is not None:
+                # the robust weights served the normals; the coefficients fit every valid
+                # observation (shrunk toward the shared mix), which relights best
+                ch.set_ridge_scale(n, Phi)
+                a = final_coefficients(ch, n, cfg.nonneg, prior=basis.T.unsqueeze(0) @ ref.mixing[sl], Phi=Phi)
+            else:
+                ch.ridge_diag = ref.ridge_diag[sl]
+                a = final_coefficients(ch, n, cfg.nonneg, Phi=Phi)
+            r = (ch.y - Phi @ a) * ch.sw.unsqueeze(-1)
+            resid[sl] = ((r * r).sum((-1, -2)) / (ch.w.sum(-1).clamp(min=1e-12) * C)).sqrt()
+            coefs[sl] = a.transpose(1, 2)
+    return Coefficients(coefficients=coefs, residual=resid)

@@ -1,0 +1,34 @@
+"""Stage 2 of the HSH solver: the start normals.
+
+Takes the :class:`~torch_hsh.ps.observations.Observations` and optional
+user normals ``init (*S, 3)``; returns ``(P, 3)`` unit start normals: the
+robust (trimmed) Lambertian solution by default, always tilted in front of the
+camera (``n_z >= 0.05`` before normalisation).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from .lambertian import _solve_flat, trimmed_weights
+from .observations import Observations
+
+__all__ = ["initial_normals"]
+
+
+def initial_normals(obs: Observations, init: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Start normals ``(P, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``init``."""
+    d = obs.data
+    dev, dt = d.y.device, d.y.dtype
+    if init is None:
+        n_start, _ = _solve_flat(d.y, d.lights, trimmed_weights(d.y, 0.25, 0.10))
+    else:
+        if not isinstance(init, torch.Tensor) or tuple(init.shape) != (*d.pixel_shape, 3):
+            raise ValueError(
+                f"`init` must be a tensor of shape {(*d.pixel_shape, 3)}, got {getattr(init, 'shape', init)!r}"
+            )
+        n_start = torch.nn.functional.normalize(init.to(device=dev, dtype=dt).reshape(-1, 3)[d.mask.reshape(-1)], dim=-1)
+    # keep the start in front of the camera
+    nz = n_start[:, 2].clamp(min=0.05)
+    return torch.nn.functional.normalize(torch.cat([n_start[:, :2], nz.unsqueeze(-1)], -1), dim=-1)

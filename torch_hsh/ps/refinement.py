@@ -1,0 +1,196 @@
+"""Stage 4 of the HSH solver: per-pixel refinement of the normals (and mixing weights).
+
+Takes the observations, the start normals and, for the shared model, the
+calibrated basis BRDFs; returns a :class:`Refinement` (normals, robust
+weights, and the mixing weights or the ridge of the independent model),
+processed in chunks of pixels so memory is bounded by the chunk size.
+
+* Shared model (:func:`refine_shared_chunk`): per pixel, Cauchy IRLS on the
+  mixing weights (closed form) alternating with one variable-projection LM
+  step of the normal, with a coarse cone search at the first iteration; a
+  pixel stops once its normal is still.
+* Independent model (:func:`refine_independent_chunk`): free coefficients per
+  pixel; IRLS stages on the coefficients at the start normal, cone search,
+  then LM stages.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from .design import MixedDesign
+from .optim import (
+    PixelProblem,
+    _ridge_diag,
+    cone_search,
+    fd_step,
+    irls_weights,
+    lm_independent,
+    lm_normals,
+    reduced_cost,
+    robust_coefficient_weights,
+    solve_weights,
+)
+from .design import ridge_profile
+from .observations import Observations
+from .settings import Settings
+
+__all__ = ["Refinement", "refine", "refine_independent_chunk", "refine_shared_chunk"]
+
+_PIXEL_IRLS = 2  # reweighting passes per iteration of the per-pixel pass
+
+
+
+def refine_independent_chunk(y, w0, n, lights, view, order, profile, ridge, robust, robust_iters, search_angles,
+                       search_azimuths, max_iter, sigma_y):
+    """Independent per-pixel model on one batch: returns normals, the :class:`PixelProblem` and LM iterations."""
+    ch = PixelProblem(y, w0, lights, view, order, profile, ridge)
+    n = n.clone()
+    ch.set_ridge_scale(n)
+    iters = 0
+    floor = None
+    if robust:
+        yscale = ch.y.mean(-1).abs().amax(-1)
+        floor = torch.maximum(torch.full_like(yscale, 3 * sigma_y), 1e-3 * yscale).clamp(min=1e-12)
+        # IRLS on the coefficients at the start normal: observations the basis
+        # cannot explain (sharp highlights, interreflections) lose their weight
+        # before the normal moves
+        for _ in range(robust_iters + 1):
+            ch.set_weights(robust_coefficient_weights(ch, n, w0, floor))
+    n = cone_search(n, ch.cost, search_angles, search_azimuths)  # coarse search over a cone of candidates
+    n, _, k = lm_independent(ch, n, max_iter)
+    iters += k
+    if robust:
+        for _ in range(robust_iters):
+            ch.set_weights(robust_coefficient_weights(ch, n, w0, floor))
+            n, _, k = lm_independent(ch, n, max_iter)
+            iters += k
+    return n, ch, iters
+
+
+def refine_shared_chunk(B, y, w0, n, lights, order, scale, c, iters, irls, search_angles, search_azimuths, work_dtype,
+                          step_tol: float = 2e-4):
+    """Per-pixel IRLS + Levenberg–Marquardt on the normals with the basis BRDFs fixed.
+
+    Every iteration: ``irls`` Cauchy reweighting steps (mixing weights in
+    closed form at the current normal), then one LM step of the normal. A
+    pixel stops once its normal moves less than ``step_tol`` radians (after at
+    least three iterations), so results do not depend on the chunking.
+
+    Returns normals, robust weights, mixing weights ``(p, M, C)`` (in ``y``'s dtype) and the iterations used.
+    """
+    out_dt = y.dtype
+    des = MixedDesign(B.to(work_dtype), lights.to(work_dtype), order)
+    yd, w0d, nd = y.to(work_dtype).transpose(1, 2).contiguous(), w0.to(work_dtype), n.to(work_dtype)  # yd (p, C, L)
+    h = fd_step(work_dtype)
+    Psi = des(nd)
+    w = w0d.clone()
+
+    active = torch.ones(nd.shape[0], dtype=torch.bool, device=nd.device)
+    used = 0
+    for it in range(iters):
+        idx = active.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            break
+        used += 1
+        yi, ni, Pi = yd[idx], nd[idx], Psi[idx]
+        wi, _ = irls_weights(Pi, yi, w[idx], w0d[idx], scale, c, irls)
+        rd = _ridge_diag(Pi, wi, 1e-4)
+        if it == 0:
+            ni = cone_search(
+                ni, lambda m: reduced_cost(des(m), wi, yi, rd)[0], search_angles, search_azimuths,
+                base_cost=reduced_cost(Pi, wi, yi, rd)[0],
+            )
+        n_new, _ = lm_normals(des, yi, wi, rd, ni, 1, h)
+        step = (n_new - nd[idx]).norm(dim=-1)
+        nd[idx] = n_new
+        Psi[idx] = des(n_new)
+        w[idx] = wi
+        if it >= 2:
+            active[idx[step < step_tol]] = False
+    w, _ = irls_weights(Psi, yd, w, w0d, scale, c, irls)
+    rd = _ridge_diag(Psi, w, 1e-4)
+    Wt, _, _ = solve_weights(Psi, w, yd, rd)
+    return nd.to(out_dt), w.to(out_dt), Wt.to(out_dt), used
+
+
+@dataclass
+class Refinement:
+    """State after stage 4.
+
+    Attributes:
+        normals: ``(P, 3)`` unit normals.
+        weights: ``(P, L)`` final robust weights of the normal estimation.
+        fit_weights: ``(P, L)`` weights of the final coefficient fit: the
+            observation weights for the shared model (the coefficients fit every
+            valid observation), the robust weights for the independent model.
+        mixing: shared model: ``(P, M, C)`` mixing weights; else ``None``.
+        ridge_diag: independent model: ``(P, K)`` per-pixel ridge; else ``None``.
+        iterations: LM iterations summed over the chunks.
+        moved: number of pixels whose normal left its start.
+        chunks: number of chunks processed.
+    """
+
+    normals: torch.Tensor
+    weights: torch.Tensor
+    fit_weights: torch.Tensor
+    mixing: Optional[torch.Tensor]
+    ridge_diag: Optional[torch.Tensor]
+    iterations: int
+    moved: int
+    chunks: int
+
+
+def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optional[torch.Tensor] = None,
+           scale: Optional[float] = None) -> Refinement:
+    """Stage 4: refine every pixel's normal in chunks of ``cfg.chunk_size`` pixels.
+
+    ``basis (M, K)`` and the robust ``scale`` come from the calibration (shared
+    model); with ``basis=None`` the independent model runs.
+    """
+    d, w0 = obs.data, obs.weights
+    P, L, C = d.y.shape
+    dev, dt = d.y.device, d.y.dtype
+    wdt = dt if cfg.work_dtype is None else cfg.work_dtype
+    view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
+    profile = ridge_profile(cfg.order, dt, dev)
+    shared = basis is not None
+    normals = torch.empty(P, 3, dtype=dt, device=dev)
+    wfin = torch.empty(P, L, dtype=dt, device=dev)
+    mixing = torch.empty(P, basis.shape[0], C, dtype=dt, device=dev) if shared else None
+    ridge_diag = None if shared else torch.empty(P, profile.shape[0], dtype=dt, device=dev)
+    starts = list(range(0, P, cfg.chunk_size))
+    it = starts
+    if cfg.progress:
+        from tqdm.auto import tqdm
+
+        it = tqdm(starts, desc="HSH photometric stereo", unit="chunk")
+    total_iters = 0
+    moved = 0
+    with torch.no_grad():
+        for s in it:
+            sl = slice(s, min(P, s + cfg.chunk_size))
+            if shared:
+                n, w, Wt, k = refine_shared_chunk(
+                    basis, d.y[sl], w0[sl], n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.max_iter,
+                    _PIXEL_IRLS, cfg.search_angles, cfg.search_azimuths, wdt,
+                )
+                n = torch.nn.functional.normalize(n, dim=-1)
+                mixing[sl] = Wt
+            else:
+                n, ch, k = refine_independent_chunk(
+                    d.y[sl], w0[sl], n_start[sl], d.lights, view, cfg.order, profile, cfg.ridge, cfg.robust,
+                    cfg.robust_iters, cfg.search_angles, cfg.search_azimuths, cfg.max_iter, obs.sigma_y,
+                )
+                w = ch.w
+                ridge_diag[sl] = ch.ridge_diag
+            total_iters += k
+            moved += int(((n_start[sl] - n).norm(dim=-1) > 1e-6).sum())
+            normals[sl] = n
+            wfin[sl] = w
+    return Refinement(
+        normals=normals, weights=wfin, fit_weights=w0 if shared else wfin, mixing=mixing, ridge_diag=ridge_diag,
+        iterations=total_iters, moved=moved, chunks=len(starts),
+    )

@@ -1,0 +1,241 @@
+"""Stage 6 of the HSH solver: the result.
+
+:class:`HSHResult` (maps of normals, coefficients, albedo, residuals, weights;
+relighting), the closed-form directional albedo toward the camera
+(:func:`directional_albedo_view`), and :func:`holdout_evaluation` (fit on a
+subset of the lights, relighting error on the rest).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Dict, Optional, Sequence
+
+import torch
+
+from ..basis import _polar_table, isotropic_indices
+from ..render import order_from_num_coefficients, render_coefficients
+from .lambertian import robust_lambertian
+from .observations import prepare_inputs
+
+__all__ = ["HSHResult", "HoldoutResult", "directional_albedo_view", "holdout_evaluation"]
+
+
+@dataclass
+class HSHResult:
+    """Output of :func:`solve_hsh`.
+
+    Attributes:
+        normals: ``(*S, 3)`` unit normals (DiLiGenT frame), zero outside ``mask``.
+        coefficients: ``(*S, C, K)`` isotropic Helmholtz coefficient maps.
+        albedo: ``(*S, C)`` directional albedo toward the camera,
+            :math:`\\int f(\\omega_i, v) \\cos\\theta_i d\\omega_i`.
+        residual: ``(*S)`` weighted RMS residual of the coefficient fit.
+        weights: ``(*S, L)`` final robust observation weights of the normal
+            estimation (0 = not used; the shared model fits the coefficients
+            to every valid observation).
+        mask: ``(*S)`` bool.
+        order: basis order.
+        lights: ``(L, 3)`` lights used in the fit.
+        runtime_s: wall time of the solve in seconds.
+        info: diagnostics (noise estimate, saturation level, iteration counts, ...).
+        basis_brdfs: shared model only: ``(M, K)`` unit-norm basis BRDFs
+            (isotropic Helmholtz coefficients), else ``None``.
+        mixing: shared model only: ``(*S, C, M)`` per-pixel mixing weights
+            (``coefficients ~= mixing @ basis_brdfs``), else ``None``.
+    """
+
+    normals: torch.Tensor
+    coefficients: torch.Tensor
+    albedo: torch.Tensor
+    residual: torch.Tensor
+    weights: torch.Tensor
+    mask: torch.Tensor
+    order: int
+    lights: torch.Tensor
+    runtime_s: float
+    info: Dict[str, float] = field(default_factory=dict)
+    basis_brdfs: Optional[torch.Tensor] = None
+    mixing: Optional[torch.Tensor] = None
+
+    def relight(self, lights: torch.Tensor, intensities: Optional[torch.Tensor] = None, clamp: bool = True) -> torch.Tensor:
+        """Render the fitted surface under new lights.
+
+        Args:
+            lights: ``(L', 3)`` directions toward the lights.
+            intensities: ``None``, ``(L',)`` or ``(L', C)``.
+            clamp: clamp negative radiance to zero (default).
+
+        Returns:
+            ``(L', *S, C)`` images, zero outside the mask.
+
+        Example:
+            >>> res.relight(torch.tensor([[0.0, 0.0, 1.0]])).shape  # doctest: +SKIP
+            torch.Size([1, 64, 64, 3])
+        """
+        img = render_coefficients(self.normals, lights.to(self.normals), self.coefficients, intensities, None)
+        img = img * self.mask.to(img.dtype).unsqueeze(-1)
+        return img.clamp(min=0.0) if clamp else img
+
+
+@dataclass
+class HoldoutResult:
+    """Output of :func:`holdout_evaluation`.
+
+    Attributes:
+        train_indices, test_indices: light indices used for fitting / held out.
+        relative_rmse: ``sqrt(sum (pred - obs)^2 / sum obs^2)`` over the held-out
+            observations (inside the mask, unsaturated, finite) for the HSH fit.
+        rmse: root-mean-square error of the HSH relighting (image units).
+        lambertian_relative_rmse: the same for the robust Lambertian fit.
+        predictions: ``(L_test, *S, C)`` relit images.
+        result: the :class:`HSHResult` fitted on the training lights.
+    """
+
+    train_indices: torch.Tensor
+    test_indices: torch.Tensor
+    relative_rmse: float
+    rmse: float
+    lambertian_relative_rmse: float
+    predictions: torch.Tensor
+    result: HSHResult
+
+
+def _albedo_vector(order: int, cos_o: torch.Tensor) -> torch.Tensor:
+    """``D_k(cos_o) = integral of B_k(wi, wo) cos(theta_i) dwi`` for every isotropic function, ``(P, K)``.
+
+    Only q = 0 terms with p <= 1 or r <= 1 are non-zero: the integral over
+    ``[0, 1]`` of ``P~_n(x) x dx`` is 1/2 (n = 0), 1/6 (n = 1), 0 otherwise.
+    """
+    idx = isotropic_indices(order).tolist()
+    R = _polar_table(cos_o.clamp(0.0, 1.0), order)  # normalised Theta_n^m(cos_o) table
+    # columns of the polar table for m = 0 are the first block: n = 0..P at columns 0..P
+    integ = {0: 0.5, 1: 1.0 / 6.0}
+    cols = []
+    zero = torch.zeros_like(cos_o)
+    for p, r, q in idx:
+        if q != 0:
+            cols.append(zero)
+            continue
+        npr = 0.5 if p == r else 1.0 / math.sqrt(2.0)
+        val = zero
+        for a, b in ((p, r), (r, p)):
+            if a in integ:
+                ca = 2.0 * math.pi * math.sqrt((2 * a + 1) / (2.0 * math.pi)) * integ[a]
+                val = val + ca * R[:, _m0_col(order, b)]
+        cols.append(npr * val)
+    return torch.stack(cols, dim=-1)
+
+
+def _m0_col(order: int, n: int) -> int:
+    # block layout of _polar_table: block j = n - m holds m = 0..P-j; m = 0 of block j sits at offset(j)
+    off = 0
+    for j in range(n):
+        off += order + 1 - j
+    return off
+
+
+def directional_albedo_view(coefficients: torch.Tensor, cos_o: torch.Tensor) -> torch.Tensor:
+    r"""Directional albedo :math:`\rho(\omega_o) = \int f(\omega_i, \omega_o)\cos\theta_i\,d\omega_i` in closed form.
+
+    Args:
+        coefficients: ``(..., C, K)`` isotropic Helmholtz coefficients.
+        cos_o: ``(...)`` cosine of the outgoing direction with the normal.
+
+    Returns:
+        ``(..., C)``.
+
+    Example:
+        >>> a = torch.zeros(1, 3, 20, dtype=torch.float64); a[..., 0] = 2 * 0.5  # Lambertian rho = 0.5
+        >>> directional_albedo_view(a, torch.tensor([0.7], dtype=torch.float64))
+        tensor([[0.5000, 0.5000, 0.5000]], dtype=torch.float64)
+    """
+    K = coefficients.shape[-1]
+
+    order = order_from_num_coefficients(K)
+    lead = cos_o.shape
+    D = _albedo_vector(order, cos_o.reshape(-1).to(coefficients.dtype))  # (N, K)
+    a = coefficients.reshape(-1, coefficients.shape[-2], K)
+    return torch.einsum("nck,nk->nc", a, D).reshape(*lead, coefficients.shape[-2])
+
+
+def holdout_evaluation(
+    images: torch.Tensor,
+    lights: torch.Tensor,
+    intensities: Optional[torch.Tensor] = None,
+    mask: Optional[torch.Tensor] = None,
+    holdout: int = 10,
+    seed: int = 0,
+    test_indices: Optional[Sequence[int]] = None,
+    **solver_kwargs,
+) -> HoldoutResult:
+    """Fit on a subset of the lights and report the relighting error on the rest.
+
+    Args:
+        images, lights, intensities, mask: as in :func:`solve_hsh`.
+        holdout: number of lights held out (chosen by a seeded permutation).
+        seed: permutation seed.
+        test_indices: explicit held-out light indices (overrides ``holdout``).
+        **solver_kwargs: passed to :func:`solve_hsh` (e.g. ``order``).
+
+    Returns:
+        :class:`HoldoutResult`. Errors are computed over held-out observations
+        inside the mask that are finite and below the detected saturation level.
+
+    Raises:
+        ValueError: if fewer than 3 lights would remain for fitting.
+
+    Example:
+        >>> ho = holdout_evaluation(images, lights, mask=mask, holdout=5)  # doctest: +SKIP
+        >>> ho.relative_rmse < ho.lambertian_relative_rmse  # doctest: +SKIP
+        True
+    """
+    from .hsh import solve_hsh  # the pipeline imports this module
+
+    d = prepare_inputs(images, lights, intensities, mask, min_lights=4)
+    L = d.y.shape[1]
+    if test_indices is None:
+        if isinstance(holdout, bool) or int(holdout) != holdout or holdout < 1:
+            raise ValueError(f"`holdout` must be a positive integer, got {holdout!r}")
+        if L - int(holdout) < 3:
+            raise ValueError(f"`holdout`={holdout} leaves {L - int(holdout)} lights for fitting; at least 3 are needed")
+        g = torch.Generator().manual_seed(int(seed))
+        perm = torch.randperm(L, generator=g)
+        test = perm[: int(holdout)].sort().values
+    else:
+        test = torch.as_tensor(list(test_indices), dtype=torch.long).unique()
+        if test.numel() < 1 or int(test.min()) < 0 or int(test.max()) >= L:
+            raise ValueError(f"`test_indices` must be distinct light indices in [0, {L}), got {list(test_indices)}")
+        if L - test.numel() < 3:
+            raise ValueError(f"holding out {test.numel()} lights leaves fewer than 3 for fitting")
+    keep = torch.ones(L, dtype=torch.bool)
+    keep[test] = False
+    train = keep.nonzero().squeeze(1)
+    dev = images.device
+    e_all = None if intensities is None else intensities.to(dev)
+    e_tr = None if e_all is None else e_all[train.to(dev)]
+    e_te = None if e_all is None else e_all[test.to(dev)]
+    res = solve_hsh(images[train.to(dev)], lights[train.to(dev)], e_tr, mask, **solver_kwargs)
+    pred = res.relight(lights[test.to(dev)].to(res.normals.dtype), None if e_te is None else e_te.to(res.normals.dtype))
+    obs = images[test.to(dev)].to(pred.dtype)
+    m = d.mask.unsqueeze(0).expand(obs.shape[:-1]).unsqueeze(-1).expand_as(obs)
+    valid = m & torch.isfinite(obs)
+    if "saturation_level" in res.info:
+        valid = valid & (obs < 0.99 * res.info["saturation_level"])
+    diff = torch.where(valid, pred - obs, torch.zeros_like(obs))
+    ref = torch.where(valid, obs, torch.zeros_like(obs))
+    nval = valid.sum().clamp(min=1)
+    rmse = float(((diff * diff).sum() / nval).sqrt())
+    rel = float((diff * diff).sum().sqrt() / (ref * ref).sum().sqrt().clamp(min=1e-30))
+    # robust Lambertian baseline on the same split
+    lam = robust_lambertian(images[train.to(dev)], lights[train.to(dev)], e_tr, mask)
+    lt = torch.nn.functional.normalize(lights[test.to(dev)].to(pred.dtype), dim=-1)
+    shade = torch.einsum("...a,la->l...", lam.normals.to(pred.dtype), lt).clamp(min=0.0)
+    lpred = lam.albedo.to(pred.dtype).unsqueeze(0) / math.pi * shade.unsqueeze(-1)
+    if e_te is not None:
+        ee = e_te.to(pred.dtype)
+        ee = ee.unsqueeze(-1) if ee.dim() == 1 else ee
+        lpred = lpred * ee.reshape(ee.shape[0], *([1] * (lpred.dim() - 2)), ee.shape[-1])
+    ldiff = torch.where(valid, lpred - obs, torch.zeros_like(obs))
+    lrel = float((ldiff * ldiff).sum().sqrt() / (ref * ref).sum().sqrt().clamp(min=1e-30))
+    return HoldoutResult(train, test, rel, rmse, lrel, pred, res)

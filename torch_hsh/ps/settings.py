@@ -1,0 +1,114 @@
+"""Validated settings of the HSH solver, shared by its stages (see :func:`~torch_hsh.ps.solve_hsh`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import torch
+
+from .._checks import check_order
+
+__all__ = ["Settings", "DEFAULT_ORDER", "DEFAULT_MATERIALS", "CAUCHY_C"]
+
+#: Default basis order: 3 (K = 20 functions per channel). With the view fixed
+#: (orthographic camera) only (P+1)(P+2)/2 = 10 combinations per channel are
+#: identifiable from one pixel, comfortably fewer than the 50-100 lights of a
+#: typical capture even after shadows and highlights are removed.
+DEFAULT_ORDER = 3
+
+#: Default number of shared basis BRDFs ("materials") of the shared model.
+#: Two cover the common dichromatic case (a coloured body reflection and a
+#: specular reflection with its own colour) with free RGB weights per pixel.
+DEFAULT_MATERIALS = 2
+
+#: Cauchy constant of every robust reweighting (95 % efficiency at Gaussian noise).
+CAUCHY_C = 2.385
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Every option of :func:`~torch_hsh.ps.solve_hsh`, validated (see its docstring for the meaning)."""
+
+    order: int
+    materials: Optional[int]
+    ridge: float
+    search_angles: Tuple[float, ...]
+    search_azimuths: int
+    max_iter: int
+    robust: bool
+    robust_iters: int
+    calibration_pixels: int
+    calibration_rounds: int
+    calibration_starts: Tuple[str, ...]
+    nonneg: bool
+    chunk_size: int
+    work_dtype: Optional[torch.dtype]
+    seed: int
+    progress: bool
+    cauchy_c: float = CAUCHY_C
+
+    @classmethod
+    def validated(
+        cls,
+        order,
+        materials,
+        ridge,
+        search_angles,
+        search_azimuths,
+        max_iter,
+        robust,
+        robust_iters,
+        calibration_pixels,
+        calibration_rounds,
+        calibration_starts,
+        nonneg,
+        chunk_size,
+        work_dtype,
+        seed,
+        progress,
+    ) -> "Settings":
+        order = check_order(order)
+        if materials is not None:
+            if isinstance(materials, bool) or int(materials) != materials or not 1 <= int(materials) <= 8:
+                raise ValueError(
+                    f"`materials` must be an integer in [1, 8] or None (independent BRDFs), got {materials!r}"
+                )
+            materials = int(materials)
+        if not ridge > 0:
+            raise ValueError(f"`ridge` must be > 0 (it keeps the rank-deficient normal equations solvable), got {ridge}")
+        if int(chunk_size) < 1:
+            raise ValueError(f"`chunk_size` must be >= 1, got {chunk_size}")
+        if max_iter is None:
+            max_iter = 15 if materials is None else 8
+        if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 0:
+            raise ValueError(f"`max_iter` must be an integer >= 0, got {max_iter!r}")
+        bad = [s_ for s_ in calibration_starts if s_ not in ("lambertian", "independent")]
+        if isinstance(calibration_starts, str) or bad:
+            raise ValueError(
+                f"`calibration_starts` must be a sequence of 'lambertian' / 'independent', got {calibration_starts!r}"
+            )
+        if work_dtype is not None and work_dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"`work_dtype` must be torch.float32, torch.float64 or None, got {work_dtype!r}")
+        if int(calibration_pixels) < 1 or int(calibration_rounds) < 0:
+            raise ValueError(
+                f"`calibration_pixels` must be >= 1 and `calibration_rounds` >= 0, got {calibration_pixels}, "
+                f"{calibration_rounds}"
+            )
+        return cls(
+            order=order,
+            materials=materials,
+            ridge=ridge,
+            search_angles=tuple(search_angles),
+            search_azimuths=search_azimuths,
+            max_iter=int(max_iter),
+            robust=robust,
+            robust_iters=robust_iters,
+            calibration_pixels=int(calibration_pixels),
+            calibration_rounds=int(calibration_rounds),
+            calibration_starts=tuple(calibration_starts),
+            nonneg=nonneg,
+            chunk_size=int(chunk_size),
+            work_dtype=work_dtype,
+            seed=seed,
+            progress=progress,
+        )
