@@ -254,5 +254,5 @@ def test_noise_estimate_ignores_object_pixels_left_outside_the_mask():
     part[12:20, 12:20] = True
     for m in (full, part):
         d = prepare_inputs(img, l, mask=m)
-        _, info = ps.observation_weights(d.y, d.raw, d.background)
+        _, info = ps.observation_weights(d.y, d.y * d.intensities, d.background)
         assert 0.7 * sigma < info["noise_sigma"] < 1.4 * sigma, info["noise_sigma"]

@@ -117,13 +117,13 @@ def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y,
 
     Returns ``B (M, K)``, the robust scale, the subset indices and their normals.
     """
-    dt, dev = y.dtype, y.device
+    dt, dev = lights.dtype, y.device
     usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
     if usable.numel() == 0:
         usable = torch.arange(y.shape[0], device=dev)
     g = torch.Generator().manual_seed(int(seed))
     S = usable[torch.randperm(usable.numel(), generator=g)[:n_pixels].to(dev)]
-    yS, w0S = y[S], w0[S]
+    yS, w0S = y[S].to(dt), w0[S].to(dt)
     _, alb = _solve_flat(yS, lights, trimmed_weights(yS, 0.25, 0.10))
     W0 = _initial_mixing(alb, M, seed)
     starts_S = [n_start[S]]
@@ -189,7 +189,7 @@ class Calibration:
 def calibrate(obs: Observations, n_start: torch.Tensor, cfg: Settings) -> Calibration:
     """Stage 3: calibrate ``cfg.materials`` shared basis BRDFs; writes its diagnostics into ``obs.info``."""
     d, w0, info = obs.data, obs.weights, obs.info
-    dt = d.y.dtype
+    dt = d.dtype
     wdt = dt if cfg.work_dtype is None else cfg.work_dtype
     profile = ridge_profile(cfg.order, dt, d.y.device)
     with torch.no_grad():
@@ -200,8 +200,7 @@ def calibrate(obs: Observations, n_start: torch.Tensor, cfg: Settings) -> Calibr
         )
         # floor: the noise level, and 1e-4 of the typical brightness (quantisation,
         # float32 rounding) so that noise-free data do not get a zero scale
-        yv = d.y.mean(-1)[w0 > 0]
-        typical = float(yv.abs().median()) if yv.numel() else 1.0
+        typical = obs.typical
         scale = max(scale, 3.0 * obs.sigma_y, 1e-4 * typical, 1e-12)
     info["materials"] = float(cfg.materials)
     info["robust_scale"] = scale

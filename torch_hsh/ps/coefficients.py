@@ -78,7 +78,7 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
     """
     d = obs.data
     P, L, C = d.y.shape
-    dev, dt = d.y.device, d.y.dtype
+    dev, dt = d.y.device, d.dtype
     K = ridge_profile(cfg.order, dt, dev).shape[0]
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
     profile = ridge_profile(cfg.order, dt, dev)
@@ -88,7 +88,7 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
         for s in range(0, P, cfg.chunk_size):
             sl = slice(s, min(P, s + cfg.chunk_size))
             n = ref.normals[sl]
-            ch = PixelProblem(d.y[sl], ref.fit_weights[sl], d.lights, view, cfg.order, profile, cfg.ridge)
+            ch = PixelProblem(d.y[sl].to(dt), ref.fit_weights[sl].to(dt), d.lights, view, cfg.order, profile, cfg.ridge)
             Phi = ch.design(n)
             if basis is not None:
                 # the robust weights served the normals; the coefficients fit every valid

@@ -49,6 +49,7 @@ from ._common import scatter_pixels
 from .calibration import calibrate
 from .coefficients import fit_coefficients
 from .initialisation import initial_normals
+from .lambertian import _solve_flat
 from .observations import observation_weights, observe
 from .refinement import refine
 from .result import HoldoutResult, HSHResult, directional_albedo_view, holdout_evaluation
@@ -92,6 +93,7 @@ def solve_hsh(
     work_dtype: Optional[torch.dtype] = torch.float32,
     seed: int = 0,
     progress: bool = False,
+    valid: Optional[torch.Tensor] = None,
 ) -> HSHResult:
     r"""Photometric stereo with isotropic Helmholtz HSH BRDFs.
 
@@ -154,11 +156,25 @@ def solve_hsh(
             accuracy; ``None``: ``dtype``).
         seed: seed of the calibration subset.
         progress: show tqdm progress bars (calibration starts, then chunks of pixels).
+        valid: optional ``(L, H, W)`` / ``(L, P)`` bool: False excludes an
+            observation (for example one known to be in a cast shadow). Non-finite
+            and negative observations are always excluded; an excluded
+            observation never influences another pixel.
+
+    Real captures: the solver runs at unit brightness (the images are divided
+    by a power of two near their median), so the normals do not depend on the
+    images' units; every pixel inside the mask gets a finite unit normal (a
+    pixel with fewer than 4 valid observations keeps a Lambertian normal and
+    confidence 0); images are held in float32 when they are float32 (the
+    per-pixel fits convert chunk by chunk), so memory stays a small multiple
+    of the stack.
 
     Returns:
         :class:`HSHResult` (normals, coefficient maps, directional albedo,
-        and for the shared model the basis BRDFs and mixing weights), in
-        ``dtype`` on the images' device.
+        confidence, and for the shared model the basis BRDFs and mixing
+        weights), in ``dtype`` on the images' device (``weights`` in the
+        images' storage dtype). ``info`` holds the diagnostics, including the
+        wall time of each stage (``time_<stage>_s``).
 
     Raises:
         ValueError: shape mismatches, fewer than 3 lights, empty mask, bad
@@ -174,29 +190,74 @@ def solve_hsh(
         order, materials, ridge, search_angles, search_azimuths, max_iter, robust, robust_iters, calibration_pixels,
         calibration_rounds, calibration_starts, nonneg, chunk_size, work_dtype, seed, progress,
     )
-    obs = observe(images, lights, intensities, mask, dtype, dark_fraction, noise_sigma, saturation)  # 1
-    n_start = initial_normals(obs, init)  # 2
+    clock = _StageClock(t_start)
+    obs = observe(images, lights, intensities, mask, dtype, dark_fraction, noise_sigma, saturation, valid)  # 1
+    clock.lap("observations")
+    n_init = initial_normals(obs, init)  # 2
+    n_start = n_init
+    clock.lap("initialisation")
     cal = None
     if cfg.materials is not None:
         cal = calibrate(obs, n_start, cfg)  # 3
         n_start = cal.start_normals(n_start)
+        clock.lap("calibration")
     basis = None if cal is None else cal.basis
     ref = refine(obs, n_start, cfg, basis, None if cal is None else cal.scale)  # 4
+    clock.lap("refinement")
     fit = fit_coefficients(obs, ref, cfg, basis)  # 5
-    return _result(obs, ref, fit, cal, cfg, t_start)  # 6
+    clock.lap("coefficients")
+    res = _result(obs, n_init, ref, fit, cal, cfg, t_start)  # 6
+    clock.lap("result")
+    res.info.update(clock.info())
+    return res
 
 
-def _result(obs, ref, fit, cal, cfg, t_start) -> HSHResult:
+class _StageClock:
+    """Wall time of each stage, reported in ``info`` as ``time_<stage>_s``."""
+
+    def __init__(self, t0: float):
+        self.t = t0
+        self.laps = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = now - self.t
+        self.t = now
+
+    def info(self):
+        return {f"time_{k}_s": v for k, v in self.laps.items()}
+
+
+#: A pixel needs this many valid observations for the HSH model; with fewer it
+#: keeps the robust Lambertian normal (and gets confidence 0).
+MIN_VALID_OBSERVATIONS = 4
+
+
+def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     d, info = obs.data, obs.info
-    albedo = directional_albedo_view(fit.coefficients, ref.normals[:, 2])
+    n_valid = (obs.weights > 0).sum(-1)
+    normals = ref.normals
+    bad = (n_valid < MIN_VALID_OBSERVATIONS) | ~torch.isfinite(normals).all(-1) | (normals.norm(dim=-1) < 0.5)
+    if bool(bad.any()):
+        normals = normals.clone()
+        normals[bad] = _fallback_normals(obs, n_init, bad)
+    info["fallback_pixels"] = float(bad.sum())
+    scale_c = cal.scale if cal is not None else float(fit.residual.median())
+    conf = confidence(ref.weights, fit.residual, scale_c, cfg.order, cfg.cauchy_c)
+    conf = torch.where(bad, torch.zeros_like(conf), conf)
+    s = obs.scale  # the solver ran at unit brightness: coefficients are linear in the images
+    coefs = fit.coefficients * s
+    albedo = directional_albedo_view(coefs, normals[:, 2])
     info["lm_iterations"] = float(ref.iterations)
     info["chunks"] = float(ref.chunks)
     info["moved_pixels"] = float(ref.moved)
+    if "robust_scale" in info:
+        info["robust_scale"] = info["robust_scale"] * s
     return HSHResult(
-        normals=scatter_pixels(ref.normals, d.mask),
-        coefficients=scatter_pixels(fit.coefficients, d.mask),
+        normals=scatter_pixels(normals, d.mask),
+        coefficients=scatter_pixels(coefs, d.mask),
         albedo=scatter_pixels(albedo, d.mask),
-        residual=scatter_pixels(fit.residual, d.mask),
+        residual=scatter_pixels(fit.residual * s, d.mask),
         weights=scatter_pixels(ref.weights, d.mask),
         mask=d.mask,
         order=cfg.order,
@@ -204,5 +265,39 @@ def _result(obs, ref, fit, cal, cfg, t_start) -> HSHResult:
         runtime_s=time.perf_counter() - t_start,
         info=info,
         basis_brdfs=None if cal is None else cal.basis,
-        mixing=None if ref.mixing is None else scatter_pixels(ref.mixing.transpose(1, 2), d.mask),
+        mixing=None if ref.mixing is None else scatter_pixels(ref.mixing.transpose(1, 2) * s, d.mask),
+        confidence=scatter_pixels(conf, d.mask),
     )
+
+
+def _fallback_normals(obs, n_init, bad) -> torch.Tensor:
+    """Normals of the pixels the HSH model cannot serve: Lambertian least squares on their valid observations
+    where there are at least 3 of them (exactly determined for a Lambertian surface), else the stage-2 start."""
+    d = obs.data
+    idx = bad.nonzero().squeeze(1)
+    y, w = d.y[idx].to(d.dtype), obs.weights[idx].to(d.dtype)
+    n_ls, _ = _solve_flat(y, d.lights, w)
+    three = (w > 0).sum(-1) >= 3
+    return torch.where(three.unsqueeze(-1), n_ls, n_init[idx])
+
+
+def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, order: int, c: float) -> torch.Tensor:
+    """Per-pixel confidence in ``[0, 1]``: enough inliers, times a fit at the noise level.
+
+    ``weights (P, L)`` robust weights, ``residual (P,)`` weighted RMS residual,
+    ``scale`` the robust residual scale of the solve. Two factors:
+
+    * coverage ``clamp((n_eff - 3) / (U - 3), 0, 1)`` with ``n_eff`` the sum of
+      the robust weights and ``U = (P+1)(P+2)/2`` the number of BRDF
+      combinations one viewpoint can identify: 0 with 3 inliers (a normal and
+      nothing else), 1 once there are as many inliers as identifiable terms;
+    * fit ``1 / (1 + (residual / (c scale))^2)``: the Cauchy weight of the
+      pixel's residual, the same weight the solver gives an observation.
+    """
+    U = (order + 1) * (order + 2) // 2
+    n_eff = weights.to(residual.dtype).sum(-1)
+    cover = ((n_eff - 3.0) / max(U - 3, 1)).clamp(0.0, 1.0)
+    sc = max(float(scale), 1e-30)
+    fit = 1.0 / (1.0 + (residual / (c * sc)) ** 2)
+    out = cover * fit
+    return torch.where(torch.isfinite(out), out, torch.zeros_like(out))

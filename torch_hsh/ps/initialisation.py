@@ -12,7 +12,7 @@ from typing import Optional
 import torch
 
 from .lambertian import _solve_flat, trimmed_weights
-from .observations import Observations
+from .observations import _CHUNK, Observations
 
 __all__ = ["initial_normals"]
 
@@ -20,9 +20,13 @@ __all__ = ["initial_normals"]
 def initial_normals(obs: Observations, init: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Start normals ``(P, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``init``."""
     d = obs.data
-    dev, dt = d.y.device, d.y.dtype
+    dev, dt = d.y.device, d.dtype
     if init is None:
-        n_start, _ = _solve_flat(d.y, d.lights, trimmed_weights(d.y, 0.25, 0.10))
+        P = d.y.shape[0]
+        n_start = torch.empty(P, 3, dtype=dt, device=dev)
+        for s in range(0, P, _CHUNK):
+            y = d.y[s : s + _CHUNK].to(dt)
+            n_start[s : s + _CHUNK], _ = _solve_flat(y, d.lights, trimmed_weights(y, 0.25, 0.10))
     else:
         if not isinstance(init, torch.Tensor) or tuple(init.shape) != (*d.pixel_shape, 3):
             raise ValueError(

@@ -13,6 +13,7 @@ Lambertian baselines.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Dict, Optional, Tuple
 
@@ -29,24 +30,60 @@ class PSInput:
 
     Attributes:
         y: ``(P, L, C)`` observations divided by the light intensities (only
-            pixels inside the mask).
-        raw: ``(P, L, C)`` the same observations before the division (saturation
-            is a property of the raw sensor values).
-        lights: ``(L, 3)`` unit light directions.
-        intensities: ``(L, C)``.
+            pixels inside the mask), in the *storage* dtype: float32 for float32
+            (or lower-precision / integer) images, else ``dtype``. Invalid
+            observations (non-finite, negative, or excluded by the caller) are 0.
+        valid: ``(P, L)`` bool, False for the invalid observations.
+        lights: ``(L, 3)`` unit light directions, in ``dtype``.
+        intensities: ``(L, C)``, in ``dtype``.
         mask: ``(*S)`` bool mask of the pixels in ``y``.
         pixel_shape: ``S``.
         background: ``(Q, C)`` temporal deviations (value minus the pixel's median over the lights) of the
-            dark pixels outside the mask, for the noise estimate; may be empty.
+            dark pixels around the mask, for the noise estimate; may be empty.
+        dtype: the compute (and output) dtype.
     """
 
     y: torch.Tensor
-    raw: torch.Tensor
+    valid: torch.Tensor
     lights: torch.Tensor
     intensities: torch.Tensor
     mask: torch.Tensor
     pixel_shape: Tuple[int, ...]
     background: torch.Tensor
+    dtype: torch.dtype
+
+
+#: Background ring used for the noise estimate: pixels at most ``_RING_OUTER``
+#: and more than ``_RING_INNER`` pixels (Chebyshev distance) from the mask.
+#: The ring, not the whole frame, so that the estimate does not depend on how
+#: much background a capture or a crop leaves around the object; the inner gap
+#: skips the mask's boundary pixels, which blend object and background.
+_RING_INNER = 2
+_RING_OUTER = 16
+# (with fewer than 64 ring pixels, every pixel outside the mask is used)
+
+
+def _dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
+    """Binary dilation of an ``(H, W)`` bool mask by a ``(2r+1)^2`` square."""
+    if radius <= 0:
+        return mask
+    m = mask.to(torch.float32)[None, None]
+    m = torch.nn.functional.max_pool2d(m, (2 * radius + 1, 1), stride=1, padding=(radius, 0))
+    m = torch.nn.functional.max_pool2d(m, (1, 2 * radius + 1), stride=1, padding=(0, radius))
+    return m[0, 0] > 0
+
+
+def background_ring(mask: torch.Tensor, inner: int = _RING_INNER, outer: int = _RING_OUTER) -> torch.Tensor:
+    """Bool map of the background pixels in a ring around ``mask (H, W)`` (all of ``~mask`` for other shapes)."""
+    if mask.dim() != 2:
+        return ~mask
+    return _dilate(mask, outer) & ~_dilate(mask, inner)
+
+
+def _storage_dtype(images: torch.Tensor, dtype: torch.dtype) -> torch.dtype:
+    if images.dtype == torch.float64:
+        return dtype
+    return torch.float32 if dtype in (torch.float32, torch.float64) else dtype
 
 
 def prepare_inputs(
@@ -56,8 +93,14 @@ def prepare_inputs(
     mask: Optional[torch.Tensor] = None,
     min_lights: int = 3,
     dtype: Optional[torch.dtype] = None,
+    valid: Optional[torch.Tensor] = None,
 ) -> PSInput:
-    """Validate and flatten ``images (L, *S, C)``, ``lights (L, 3)``, ``intensities``, ``mask (*S)``."""
+    """Validate and flatten ``images (L, *S, C)``, ``lights (L, 3)``, ``intensities``, ``mask (*S)``, ``valid (L, *S)``.
+
+    Memory: the pixels inside the mask are gathered one image at a time into
+    one ``(P, L, C)`` buffer of the storage dtype (see :class:`PSInput`); the
+    input stack is never converted as a whole.
+    """
     check_tensor(images, "images", allow_nonfinite=True)
     if images.dim() < 3:
         raise ValueError(
@@ -76,8 +119,11 @@ def prepare_inputs(
         raise ValueError(f"photometric stereo needs at least {min_lights} lights, got {L}")
     if images.device != lights.device:
         raise ValueError(f"`lights` is on {lights.device} but `images` is on {images.device}")
-    dtype = dtype or images.dtype
-    images = images.to(dtype)
+    if not (images.is_floating_point() or images.dtype in (torch.uint8, torch.int16, torch.int32, torch.uint16)):
+        raise TypeError(f"`images` must be a floating-point or unsigned-integer tensor, got {images.dtype}")
+    dtype = dtype or (images.dtype if images.is_floating_point() else torch.float32)
+    store = _storage_dtype(images, dtype)
+    dev = images.device
     lights = lights.to(dtype)
     S = tuple(images.shape[1:-1])
     C = images.shape[-1]
@@ -86,7 +132,7 @@ def prepare_inputs(
         raise ValueError("`lights` contains a zero-length direction")
     lights = lights / nrm.unsqueeze(-1)
     if intensities is None:
-        e = torch.ones(L, C, dtype=dtype, device=images.device)
+        e = torch.ones(L, C, dtype=dtype, device=dev)
     else:
         check_tensor(intensities, "intensities")
         if intensities.dim() == 1:
@@ -95,25 +141,44 @@ def prepare_inputs(
             raise ValueError(
                 f"`intensities` must have shape (L,) or (L, C) = ({L},) or ({L}, {C}), got {tuple(intensities.shape)}"
             )
-        e = intensities.to(dtype=dtype, device=images.device).expand(L, C)
+        e = intensities.to(dtype=dtype, device=dev).expand(L, C)
         if bool((e <= 0).any()):
             raise ValueError("`intensities` must be > 0")
     if mask is None:
-        mask_t = torch.ones(S, dtype=torch.bool, device=images.device)
+        mask_t = torch.ones(S, dtype=torch.bool, device=dev)
     else:
         if not isinstance(mask, torch.Tensor):
             raise TypeError(f"`mask` must be a torch.Tensor, got {type(mask).__name__}")
         if tuple(mask.shape) != S:
             raise ValueError(f"`mask` must have the pixel shape of `images` {S}, got {tuple(mask.shape)}")
-        mask_t = mask.to(device=images.device).bool()
+        mask_t = mask.to(device=dev).bool()
     if not bool(mask_t.any()):
         raise ValueError("`mask` selects no pixel")
+    if valid is not None:
+        if not isinstance(valid, torch.Tensor) or tuple(valid.shape) != (L, *S):
+            raise ValueError(
+                f"`valid` must be a bool tensor of shape (L, *S) = {(L, *S)}, got {tuple(getattr(valid, 'shape', ()))}"
+            )
+        valid = valid.to(device=dev).bool().reshape(L, -1)
     flat = images.reshape(L, -1, C)
     m = mask_t.reshape(-1)
-    raw = flat[:, m].transpose(0, 1).contiguous()  # (P, L, C)
-    bg = _dark_background(flat[:, ~m])
-    y = raw / e.unsqueeze(0)
-    return PSInput(y=y, raw=raw, lights=lights, intensities=e, mask=mask_t, pixel_shape=S, background=bg)
+    idx = m.nonzero().squeeze(1)  # int64 pixel indices
+    P = idx.numel()
+    y = torch.empty(P, L, C, dtype=store, device=dev)
+    ok = torch.empty(P, L, dtype=torch.bool, device=dev)
+    e_store = e.to(store)
+    for j in range(L):  # one image at a time: no full-stack temporaries
+        v = flat[j].index_select(0, idx).to(store)
+        good = torch.isfinite(v).all(-1) & (v >= 0).all(-1)
+        if valid is not None:
+            good &= valid[j].index_select(0, idx)
+        y[:, j] = torch.where(good.unsqueeze(-1), v / e_store[j], torch.zeros((), dtype=store, device=dev))
+        ok[:, j] = good
+    ring = background_ring(mask_t).reshape(-1)
+    if int(ring.sum()) < 64:  # too small a ring (tiny images): the whole background
+        ring = ~m
+    bg = _dark_background(flat[:, ring]) if bool(ring.any()) else flat.new_zeros(0, C)
+    return PSInput(y=y, valid=ok, lights=lights, intensities=e, mask=mask_t, pixel_shape=S, background=bg, dtype=dtype)
 
 
 def _dark_background(bg: torch.Tensor) -> torch.Tensor:
@@ -133,8 +198,7 @@ def _dark_background(bg: torch.Tensor) -> torch.Tensor:
         return bg.reshape(-1, C)
     fin = torch.where(torch.isfinite(bg), bg, torch.zeros_like(bg))
     tmax = fin.abs().amax(dim=(0, 2))  # (Qp,)
-    sample = tmax if Qp <= 1_000_000 else tmax[torch.randperm(Qp, device=tmax.device)[:1_000_000]]
-    q10 = float(torch.quantile(sample.to(torch.float64), 0.1))
+    q10 = float(torch.quantile(strided_sample(tmax, 1_000_000).to(torch.float64), 0.1))
     keep = tmax <= 4.0 * q10 + torch.finfo(tmax.dtype).tiny
     sel = bg[:, keep]  # (L, Qk, C)
     if L >= 3:
@@ -142,16 +206,58 @@ def _dark_background(bg: torch.Tensor) -> torch.Tensor:
     return sel.reshape(-1, C)
 
 
+#: Largest input of ``torch.quantile`` (it refuses more than 2**24 elements).
+QUANTILE_MAX_ELEMENTS = 2**24
+
+
+def strided_sample(x: torch.Tensor, n: int) -> torch.Tensor:
+    """At most ``n`` evenly spaced elements of a 1-D tensor, first and last included (deterministic).
+
+    Indices are computed in int64 (``i * (N - 1) // (n - 1)``): a float32
+    ``linspace`` rounds the last index past the end once ``N > 2**24``.
+    """
+    N = x.numel()
+    if N <= n:
+        return x
+    idx = torch.arange(n, dtype=torch.int64, device=x.device) * (N - 1) // (n - 1)
+    return x[idx]
+
+
+def row_quantile(x: torch.Tensor, q: float) -> torch.Tensor:
+    """``torch.quantile(x, q, dim=1, keepdim=True)`` for ``x (P, L)`` of any size (row chunks below 2**24 elements)."""
+    P, L = x.shape
+    rows = max(1, QUANTILE_MAX_ELEMENTS // max(L, 1))
+    if P <= rows:
+        return torch.quantile(x, q, dim=1, keepdim=True)
+    return torch.cat([torch.quantile(x[s : s + rows], q, dim=1, keepdim=True) for s in range(0, P, rows)])
+
+
 def robust_sigma(x: torch.Tensor) -> float:
     """1.4826 * median absolute deviation of a 1-D sample (0 for an empty sample)."""
     if x.numel() == 0:
         return 0.0
-    x = x.reshape(-1)
-    if x.numel() > 2_000_000:
-        idx = torch.linspace(0, x.numel() - 1, 2_000_000, device=x.device).long()
-        x = x[idx]
+    x = strided_sample(x.reshape(-1), 2_000_000)
     med = x.median()
     return float(1.4826 * (x - med).abs().median())
+
+
+def _check_thresholds(dark_fraction, noise_sigma, saturation) -> None:
+    if isinstance(dark_fraction, bool) or not isinstance(dark_fraction, (int, float)) or not 0.0 <= dark_fraction < 1.0:
+        raise ValueError(f"`dark_fraction` must be a number in [0, 1), got {dark_fraction!r}")
+    for name, v in (("noise_sigma", noise_sigma), ("saturation", saturation)):
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ValueError(f"`{name}` must be None (estimated) or a finite number, got {v!r}")
+        if (name == "noise_sigma" and v < 0) or (name == "saturation" and v <= 0):
+            raise ValueError(f"`{name}` must be {'>= 0' if name == 'noise_sigma' else '> 0'}, got {v!r}")
+
+
+def detect_saturation(raw_max: float, count_near_max: int, total: int) -> Optional[float]:
+    """The saturation level if the largest raw value is a plateau (>= 3 and >= 0.01 % of the values within 0.1 %)."""
+    if raw_max > 0 and count_near_max >= max(3, int(1e-4 * total)):
+        return raw_max
+    return None
 
 
 def observation_weights(
@@ -162,13 +268,13 @@ def observation_weights(
     noise_sigma: Optional[float] = None,
     saturation: Optional[float] = None,
 ):
-    """Weights ``(P, L)`` in {0, 1} from adaptive dark / saturation thresholds.
+    """Weights ``(P, L)`` in {0, 1} from validity and adaptive dark / saturation thresholds.
 
     Args:
         y: ``(P, L, C)`` observations divided by the light intensities.
         raw: ``(P, L, C)`` raw observations (same values before the division).
-        background: ``(Q, C)`` raw values outside the object mask, used for the
-            robust noise estimate ``sigma = 1.4826 MAD`` (ignored if fewer than
+        background: ``(Q, C)`` temporal deviations of background pixels, used for
+            the robust noise estimate ``sigma = 1.4826 MAD`` (ignored if fewer than
             64 pixels or if ``noise_sigma`` is given).
         dark_fraction: an observation is dark if its channel mean is below
             ``dark_fraction`` times the pixel's 75th-percentile brightness
@@ -179,8 +285,15 @@ def observation_weights(
             observations within 0.1% of the maximum); observations with a channel
             at or above 99% of that level are dropped.
 
+    Observations with a non-finite or negative channel are invalid (weight 0)
+    and do not enter any statistic.
+
     Returns:
         ``(weights (P, L), info dict)``.
+
+    Raises:
+        ValueError: ``dark_fraction`` outside ``[0, 1)``, a negative or
+            non-finite ``noise_sigma``, a non-positive or non-finite ``saturation``.
 
     Example:
         >>> y = torch.rand(4, 10, 3)
@@ -188,14 +301,13 @@ def observation_weights(
         >>> w.shape
         torch.Size([4, 10])
     """
-    finite = torch.isfinite(raw).all(-1)
-    rawf = torch.where(torch.isfinite(raw), raw, torch.zeros_like(raw))
+    _check_thresholds(dark_fraction, noise_sigma, saturation)
+    finite = (torch.isfinite(raw) & (raw >= 0)).all(-1) & torch.isfinite(y).all(-1)
+    rawf = torch.where(finite.unsqueeze(-1), raw, torch.zeros_like(raw))
     info = {}
     if saturation is None:
         mx = float(rawf.max())
-        plateau = int((rawf >= mx * (1 - 1e-3)).sum()) if mx > 0 else 0
-        if mx > 0 and plateau >= max(3, int(1e-4 * rawf.numel())):
-            saturation = mx
+        saturation = detect_saturation(mx, int((rawf >= mx * (1 - 1e-3)).sum()) if mx > 0 else 0, rawf.numel())
     sat = torch.zeros_like(finite)
     if saturation is not None:
         sat = (rawf >= 0.99 * float(saturation)).any(-1)
@@ -207,7 +319,7 @@ def observation_weights(
             noise_sigma = robust_sigma(bg)
     info["noise_sigma"] = float(noise_sigma)
     g = torch.where(finite, y.mean(-1), torch.zeros_like(y[..., 0]))
-    q75 = torch.quantile(g, 0.75, dim=1, keepdim=True)
+    q75 = row_quantile(g, 0.75)
     dark = (g <= dark_fraction * q75) | (rawf.mean(-1) <= 3.0 * noise_sigma)
     w = (finite & ~sat & ~dark).to(y.dtype)
     info["saturated_fraction"] = float(sat.to(y.dtype).mean())
@@ -220,19 +332,30 @@ class Observations:
     """State after stage 1: the data every later stage reads.
 
     Attributes:
-        data: :class:`PSInput` (``y (P, L, C)``, ``raw``, ``lights (L, 3)``,
-            ``intensities (L, C)``, ``mask``, ``pixel_shape``, ``background``).
-        weights: ``(P, L)`` observation weights in {0, 1} (0: non-finite,
-            saturated or dark).
-        sigma_y: noise level in the units of ``data.y`` (raw noise divided by the
-            mean light intensity).
+        data: :class:`PSInput` (``y (P, L, C)`` divided by the light intensities
+            *and by* ``scale``, ``valid``, ``lights (L, 3)``, ``intensities (L,
+            C)``, ``mask``, ``pixel_shape``, ``background``, ``dtype``).
+        weights: ``(P, L)`` observation weights in {0, 1} (0: invalid,
+            saturated or dark), in the storage dtype of ``data.y``.
+        sigma_y: noise level in the units of ``data.y``.
+        scale: the global scale divided out of ``data.y`` (a power of two near
+            the median valid observation, so the division is exact): the solver
+            works at unit brightness whatever the units of the images, and the
+            result's coefficients are multiplied back by it.
+        typical: median valid observation after the division (close to 1).
         info: diagnostics (noise estimate, saturation level, fractions dropped).
     """
 
     data: PSInput
     weights: torch.Tensor
     sigma_y: float
+    scale: float = 1.0
+    typical: float = 1.0
     info: Dict[str, float] = field(default_factory=dict)
+
+
+#: Pixels per chunk of the stage-1 passes (bounded temporaries).
+_CHUNK = 65536
 
 
 def observe(
@@ -244,10 +367,49 @@ def observe(
     dark_fraction: float,
     noise_sigma: Optional[float],
     saturation: Optional[float],
+    valid: Optional[torch.Tensor] = None,
 ) -> Observations:
-    """Validate, flatten and weight the observations (stage 1 of :func:`~torch_hsh.ps.solve_hsh`)."""
-    d = prepare_inputs(images, lights, intensities, mask, min_lights=3, dtype=dtype)
-    w0, info = observation_weights(d.y, d.raw, d.background, dark_fraction, noise_sigma, saturation)
+    """Validate, flatten, weight and normalise the observations (stage 1 of :func:`~torch_hsh.ps.solve_hsh`).
+
+    Processed in chunks of pixels; the saturation plateau and the noise are
+    global statistics, the dark threshold is per pixel.
+    """
+    _check_thresholds(dark_fraction, noise_sigma, saturation)
+    d = prepare_inputs(images, lights, intensities, mask, min_lights=3, dtype=dtype, valid=valid)
+    P, L, C = d.y.shape
+    e = d.intensities.to(d.y.dtype).unsqueeze(0)  # (1, L, C)
+    chunks = [slice(s, min(P, s + _CHUNK)) for s in range(0, P, _CHUNK)]
+    if saturation is None:
+        mx = max(float((d.y[sl] * e).max()) for sl in chunks)
+        near = sum(int((d.y[sl] * e >= mx * (1 - 1e-3)).sum()) for sl in chunks) if mx > 0 else 0
+        saturation = detect_saturation(mx, near, d.y.numel())
+    if noise_sigma is None:
+        noise_sigma = 0.0
+        bg = d.background
+        if bg.shape[0] >= 64:
+            noise_sigma = robust_sigma(bg[torch.isfinite(bg).all(-1)])
+    w0 = torch.empty(P, L, dtype=d.y.dtype, device=d.y.device)
+    n_sat = n_dark = 0
+    for sl in chunks:
+        w, inf = observation_weights(d.y[sl], d.y[sl] * e, None, dark_fraction, noise_sigma, saturation)
+        w0[sl] = w * d.valid[sl]
+        n_sat += inf["saturated_fraction"] * w.numel()
+        n_dark += inf["dark_fraction"] * w.numel()
+    info: Dict[str, float] = {}
+    if saturation is not None:
+        info["saturation_level"] = float(saturation)
+    info["noise_sigma"] = float(noise_sigma)
+    info["noise_background_pixels"] = float(d.background.shape[0] // max(L, 1))
+    info["saturated_fraction"] = n_sat / max(P * L, 1)
+    info["dark_fraction"] = n_dark / max(P * L, 1)
+    info["invalid_fraction"] = float((~d.valid).sum()) / max(P * L, 1)
     info["underdetermined_pixels"] = int((w0.sum(-1) < 3).sum())
-    sigma_y = info["noise_sigma"] / d.intensities.mean().item()
-    return Observations(data=d, weights=w0, sigma_y=sigma_y, info=info)
+    # global scale: a power of two near the median valid observation (exact division)
+    g = strided_sample(d.y.mean(-1)[w0 > 0], 2_000_000) if bool((w0 > 0).any()) else d.y.new_ones(1)
+    med = float(g.abs().median())
+    scale = 2.0 ** round(math.log2(med)) if med > 0 and math.isfinite(med) else 1.0
+    if scale != 1.0:
+        d.y.div_(scale)
+    info["image_scale"] = scale
+    sigma_y = info["noise_sigma"] / d.intensities.mean().item() / scale
+    return Observations(data=d, weights=w0, sigma_y=sigma_y, scale=scale, typical=med / scale if med > 0 else 1.0, info=info)

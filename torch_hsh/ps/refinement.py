@@ -152,13 +152,13 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
     """
     d, w0 = obs.data, obs.weights
     P, L, C = d.y.shape
-    dev, dt = d.y.device, d.y.dtype
+    dev, dt = d.y.device, d.dtype
     wdt = dt if cfg.work_dtype is None else cfg.work_dtype
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
     profile = ridge_profile(cfg.order, dt, dev)
     shared = basis is not None
     normals = torch.empty(P, 3, dtype=dt, device=dev)
-    wfin = torch.empty(P, L, dtype=dt, device=dev)
+    wfin = torch.empty(P, L, dtype=d.y.dtype, device=dev)  # storage dtype: weights need no float64
     mixing = torch.empty(P, basis.shape[0], C, dtype=dt, device=dev) if shared else None
     ridge_diag = None if shared else torch.empty(P, profile.shape[0], dtype=dt, device=dev)
     starts = list(range(0, P, cfg.chunk_size))
@@ -174,14 +174,14 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
             sl = slice(s, min(P, s + cfg.chunk_size))
             if shared:
                 n, w, Wt, k = refine_shared_chunk(
-                    basis, d.y[sl], w0[sl], n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.max_iter,
+                    basis, d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.max_iter,
                     _PIXEL_IRLS, cfg.search_angles, cfg.search_azimuths, wdt,
                 )
                 n = torch.nn.functional.normalize(n, dim=-1)
                 mixing[sl] = Wt
             else:
                 n, ch, k = refine_independent_chunk(
-                    d.y[sl], w0[sl], n_start[sl], d.lights, view, cfg.order, profile, cfg.ridge, cfg.robust,
+                    d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, view, cfg.order, profile, cfg.ridge, cfg.robust,
                     cfg.robust_iters, cfg.search_angles, cfg.search_azimuths, cfg.max_iter, obs.sigma_y,
                 )
                 w = ch.w

@@ -43,6 +43,11 @@ class HSHResult:
             (isotropic Helmholtz coefficients), else ``None``.
         mixing: shared model only: ``(*S, C, M)`` per-pixel mixing weights
             (``coefficients ~= mixing @ basis_brdfs``), else ``None``.
+        confidence: ``(*S)`` per-pixel confidence in ``[0, 1]`` (0 outside the
+            mask and where fewer than 4 observations are valid): the coverage
+            by inlier observations times the Cauchy weight of the pixel's
+            residual (see :func:`torch_hsh.ps.hsh.confidence`). Threshold it
+            to keep reliable pixels.
     """
 
     normals: torch.Tensor
@@ -57,6 +62,7 @@ class HSHResult:
     info: Dict[str, float] = field(default_factory=dict)
     basis_brdfs: Optional[torch.Tensor] = None
     mixing: Optional[torch.Tensor] = None
+    confidence: Optional[torch.Tensor] = None
 
     def relight(self, lights: torch.Tensor, intensities: Optional[torch.Tensor] = None, clamp: bool = True) -> torch.Tensor:
         """Render the fitted surface under new lights.

@@ -1,0 +1,198 @@
+"""Real-capture behaviour of the photometric-stereo solver (issue: crashes at full resolution, NaN pixels,
+image units, confidence, frame-independent noise estimate).
+
+Sizes above 2**24 are reached with cheap helper calls, not full solves.
+"""
+import math
+
+import pytest
+import torch
+
+from torch_hsh import ps
+from torch_hsh.brdf import BlinnPhong
+from torch_hsh.ps.observations import (
+    QUANTILE_MAX_ELEMENTS,
+    background_ring,
+    prepare_inputs,
+    robust_sigma,
+    row_quantile,
+    strided_sample,
+)
+from torch_hsh.render import render
+
+DT = torch.float64
+FAST = dict(calibration_pixels=256, calibration_rounds=4, max_iter=4)
+
+
+def _scene(p=120, l=24, seed=0, dtype=DT):
+    g = torch.Generator().manual_seed(seed)
+    n = torch.randn(p, 3, generator=g, dtype=DT) * torch.tensor([0.4, 0.4, 0.2], dtype=DT)
+    n[:, 2] += 1.0
+    n = torch.nn.functional.normalize(n, dim=-1)
+    d = torch.randn(l, 3, generator=g, dtype=DT) * torch.tensor([0.45, 0.45, 0.1], dtype=DT)
+    d[:, 2] += 1.0
+    lights = torch.nn.functional.normalize(d, dim=-1)
+    alb = 0.2 + 0.6 * torch.rand(p, 3, generator=g, dtype=DT)
+    model = BlinnPhong(alb, torch.full((p, 1), 0.3, dtype=DT), torch.full((p, 1), 20.0, dtype=DT))
+    img = render(n, lights, model, read_noise=1e-3, seed=seed)
+    return img.to(dtype), lights.to(dtype), n
+
+
+# ---------------------------------------------------------------- sizes beyond 2**24
+def test_strided_sample_stays_in_bounds_beyond_float32_integers():
+    """A float32 linspace rounds the last index of 2**24 + 4 elements past the end (the old crash)."""
+    N = 2**24 + 4  # N - 1 = 2**24 + 3 is not a float32: it rounds up to N
+    x = torch.arange(N, dtype=torch.int64)
+    s = strided_sample(x, 2_000_000)
+    assert s.numel() == 2_000_000 and int(s[0]) == 0 and int(s[-1]) == N - 1
+    assert bool((s[1:] > s[:-1]).all())
+    old = torch.linspace(0, N - 1, 2_000_000).long()  # what the solver used to do
+    assert int(old.max()) >= N  # ... which indexes out of bounds
+
+
+def test_robust_sigma_of_more_than_2_24_background_values():
+    g = torch.Generator().manual_seed(0)
+    x = 0.01 * torch.randn(2**24 + 1000, generator=g)
+    assert robust_sigma(x) == pytest.approx(0.01, rel=0.02)
+
+
+def test_observation_weights_beyond_the_quantile_limit():
+    """``torch.quantile`` refuses more than 2**24 elements; the dark threshold is per pixel, so rows are chunked."""
+    P, L = QUANTILE_MAX_ELEMENTS // 96 + 50, 96
+    g = torch.Generator().manual_seed(1)
+    y = torch.rand(P, L, 1, generator=g)
+    w, info = ps.observation_weights(y, y)
+    assert w.shape == (P, L) and info["dark_fraction"] > 0
+    sub = y[:1000, :, 0]
+    assert torch.equal(row_quantile(y[..., 0], 0.75)[:1000], torch.quantile(sub, 0.75, dim=1, keepdim=True))
+
+
+# ---------------------------------------------------------------- invalid observations stay local
+def test_one_nan_observation_stays_local():
+    img, l, n = _scene()
+    clean = ps.solve_hsh(img, l, **FAST)
+    bad = img.clone()
+    bad[3, 17, 1] = float("nan")
+    bad[5, 40, :] = -1.0  # negative: invalid too
+    bad[7, 41, 0] = float("inf")
+    r = ps.solve_hsh(bad, l, **FAST)
+    for t in (r.normals, r.coefficients, r.albedo, r.basis_brdfs, r.mixing, r.residual, r.confidence):
+        assert bool(torch.isfinite(t).all())
+    assert r.info["invalid_fraction"] > 0  # (negative read noise in the shadows is invalid too)
+    assert r.weights[17, 3] == 0 and r.weights[40, 5] == 0 and r.weights[41, 7] == 0
+    err_clean = float(ps.angular_error(clean.normals, n).mean())
+    err_bad = float(ps.angular_error(r.normals, n).mean())
+    assert err_bad < err_clean + 0.2, (err_clean, err_bad)
+
+
+def test_valid_argument_excludes_observations_like_invalid_values():
+    img, l, _ = _scene(p=60, l=20, seed=3)
+    valid = torch.ones(img.shape[:2], dtype=torch.bool)
+    valid[2, 10] = False
+    valid[4, :5] = False
+    a = ps.solve_hsh(img, l, valid=valid, **FAST)
+    nan = img.clone()
+    nan[~valid] = float("nan")
+    b = ps.solve_hsh(nan, l, **FAST)
+    assert torch.equal(a.normals, b.normals)
+    with pytest.raises(ValueError, match="valid"):
+        ps.solve_hsh(img, l, valid=valid[:3], **FAST)
+
+
+# ---------------------------------------------------------------- units
+@pytest.mark.parametrize("scale", [1e-10, 1e20])
+def test_normals_do_not_depend_on_the_image_units(scale):
+    img, l, n = _scene(seed=4)
+    ref = ps.solve_hsh(img.float(), l.float(), **FAST)
+    r = ps.solve_hsh((img * scale).float(), l.float(), **FAST)
+    assert bool(torch.isfinite(r.coefficients).all()) and bool(torch.isfinite(r.normals).all())
+    diff = ps.angular_error(r.normals, ref.normals)
+    assert float(diff.mean()) < 0.05 and float(diff.max()) < 1.0, (float(diff.mean()), float(diff.max()))
+    # coefficients carry the units of the images
+    rel = (r.coefficients / scale - ref.coefficients).abs().max() / ref.coefficients.abs().max()
+    assert float(rel) < 0.05
+
+
+# ---------------------------------------------------------------- every pixel gets a normal, and a confidence
+def test_pixels_without_enough_observations_get_a_normal_and_zero_confidence():
+    img, l, n = _scene(p=80, l=16, seed=5)
+    img[:, 0] = float("nan")  # nothing valid
+    img[:14, 1] = float("nan")  # two valid observations
+    img[:13, 2] = 0.0  # three observations left above the dark threshold
+    r = ps.solve_hsh(img, l, **FAST)
+    nrm = r.normals.norm(dim=-1)
+    assert bool(torch.isfinite(r.normals).all()) and torch.allclose(nrm, torch.ones_like(nrm))
+    assert float(r.confidence[0]) == 0 and float(r.confidence[1]) == 0 and float(r.confidence[2]) == 0
+    assert r.info["fallback_pixels"] >= 3
+    c = r.confidence[3:]
+    assert bool(((c >= 0) & (c <= 1)).all()) and float(c.mean()) > 0.5
+
+
+def test_confidence_is_low_where_the_model_does_not_fit():
+    img, l, n = _scene(p=150, l=30, seed=6)
+    g = torch.Generator().manual_seed(7)
+    img[:, :20] = img[:, :20] * (0.3 + 1.4 * torch.rand(30, 20, 1, generator=g, dtype=DT))  # random flicker
+    r = ps.solve_hsh(img, l, **FAST)
+    assert float(r.confidence[:20].mean()) < 0.5 * float(r.confidence[20:].mean())
+
+
+def test_confidence_map_is_zero_outside_the_mask():
+    img, l, _ = _scene(p=64, l=20, seed=8)
+    img = img.reshape(20, 8, 8, 3)
+    mask = torch.zeros(8, 8, dtype=torch.bool)
+    mask[2:7, 1:6] = True
+    r = ps.solve_hsh(img, l, mask=mask, **FAST)
+    assert r.confidence.shape == (8, 8) and bool((r.confidence[~mask] == 0).all())
+
+
+# ---------------------------------------------------------------- the frame around the object
+def _framed(frame, seed=9):
+    """A 24x24 object (random normals) on a noisy dark background, centred in a ``frame`` x ``frame`` image;
+    the far background (beyond 20 px of the object) is much noisier, as a lit room would be."""
+    img, l, _ = _scene(p=24 * 24, l=20, seed=seed)
+    g = torch.Generator().manual_seed(seed)
+    full = 0.002 * torch.randn(20, frame, frame, 3, generator=g, dtype=DT).abs()
+    far = torch.ones(frame, frame, dtype=torch.bool)
+    o = (frame - 24) // 2
+    far[max(0, o - 20): o + 44, max(0, o - 20): o + 44] = False
+    full[:, far] = full[:, far] * 20.0
+    full[:, o:o + 24, o:o + 24] = img.reshape(20, 24, 24, 3)
+    mask = torch.zeros(frame, frame, dtype=torch.bool)
+    mask[o:o + 24, o:o + 24] = True
+    return full, l, mask
+
+
+def test_noise_estimate_does_not_depend_on_the_frame_around_the_object():
+    img, l, mask = _framed(160)
+    b = prepare_inputs(img, l, mask=mask)
+    a = prepare_inputs(img[:, 48:112, 48:112], l, mask=mask[48:112, 48:112])  # a 20-px margin crop
+    assert a.y.shape == b.y.shape
+    assert robust_sigma(a.background) == pytest.approx(robust_sigma(b.background), rel=1e-6)
+    ring = background_ring(mask)
+    assert not bool((ring & mask).any()) and int(ring.sum()) == (24 + 32) ** 2 - (24 + 4) ** 2
+
+
+def test_object_filling_the_frame_has_no_background_and_still_solves():
+    img, l, n = _scene(p=100, l=20, seed=10)
+    r = ps.solve_hsh(img.reshape(20, 10, 10, 3), l, **FAST)
+    assert r.info["noise_sigma"] == 0.0
+    assert bool(torch.isfinite(r.normals).all())
+    lam = ps.robust_lambertian(img, l)
+    err = float(ps.angular_error(r.normals.reshape(-1, 3), n).mean())
+    assert err < float(ps.angular_error(lam.normals, n).mean()), err
+
+
+@pytest.mark.parametrize("bad", [dict(noise_sigma=-1.0), dict(noise_sigma=float("nan")), dict(dark_fraction=2.0),
+                                 dict(saturation=0.0), dict(dark_fraction=-0.1)])
+def test_threshold_arguments_are_validated(bad):
+    img, l, _ = _scene(p=10, l=8)
+    name = next(iter(bad))
+    with pytest.raises(ValueError, match=name):
+        ps.solve_hsh(img, l, **bad)
+
+
+def test_float32_images_are_held_in_float32():
+    img, l, _ = _scene(p=40, l=12, seed=11)
+    d = prepare_inputs(img.float(), l.float(), dtype=torch.float64)
+    assert d.y.dtype == torch.float32 and d.dtype == torch.float64 and d.lights.dtype == torch.float64
+    assert math.isclose(float(d.y.abs().max()), float((img.float()).abs().max()), rel_tol=1e-6)
