@@ -422,3 +422,22 @@ def test_helmholtz_mirror_spectrum_erratum2():
     expect = torch.where(p == r, torch.where(q == 0, torch.ones_like(sign), math.sqrt(2) * sign), torch.zeros_like(sign))
     torch.testing.assert_close(a, expect, rtol=0, atol=1e-12)
     assert float(a[0]) > 0.9  # the printed value 1/2 would fail here
+
+
+@pytest.mark.parametrize("name", sorted(set(COMPARISON) | {"helmholtz_isotropic", "helmholtz_anisotropic"}))
+def test_azimuthal_degree_is_a_true_bound(name):
+    """Every function up to P is a trigonometric polynomial of degree <= azimuthal_degree(P) in phi_i and phi_o."""
+    b = get_basis(name)
+    P = min(3, b.max_order)
+    Dg = b.azimuthal_degree(P)
+    assert Dg == P
+    n = 4 * P + 8
+    phi = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
+    for zi, zo in ((0.3, 0.8), (0.9, 0.15)):
+        si, so = math.sqrt(1 - zi * zi), math.sqrt(1 - zo * zo)
+        wo = torch.stack([so * torch.cos(phi), so * torch.sin(phi), torch.full_like(phi, zo)], -1)
+        for a in (0.0, 1.1):  # one direction fixed, the azimuth of the other varies (both argument orders)
+            wi = torch.tensor([si * math.cos(a), si * math.sin(a), zi], dtype=torch.float64).expand(n, 3)
+            for B in (b.evaluate(wi, wo, P), b.evaluate(wo, wi, P)):
+                spec = torch.fft.rfft(B, dim=0).abs()
+                assert float(spec[Dg + 1:].max()) < 1e-10 * max(1.0, float(spec.max()))

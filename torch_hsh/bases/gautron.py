@@ -79,6 +79,9 @@ class GautronHSH(Basis):
         )
         return out.reshape(*lead, out.shape[-1])
 
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
+
     def num_functions(self, order):
         return (self.check_order(order) + 1) ** 4
 
@@ -154,6 +157,9 @@ class GautronHSHIsotropic(Basis):
         c = _const(("gi_c", order), [1.0 if q == 0 else math.sqrt(2.0) for _, p, r, q, kd in rows], dev, dt)
         out = Ti.index_select(-1, ia) * To.index_select(-1, ib) * AZ.index_select(-1, az) * c
         return out.reshape(*lead, out.shape[-1])
+
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
 
     def num_functions(self, order):
         return len(_gautron_iso_rows(self.check_order(order)))

@@ -265,6 +265,9 @@ class WestinSH(Basis):
         out = product_basis(Fi, Fo, _sh_gather(order)[3], order, True, "westin")
         return out.reshape(*lead, out.shape[-1])
 
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
+
     def num_functions(self, order):
         k = (self.check_order(order) + 1) ** 2
         return k * (k + 1) // 2
@@ -330,6 +333,9 @@ class WestinSHIsotropic(Basis):
         RE = RE * (oki & oko).to(zi.dtype).unsqueeze(-1)
         out = isotropic_from_polar(Ti, To, col, RE, order, "westin_iso")
         return out.reshape(*lead, out.shape[-1])
+
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
 
     def num_functions(self, order):
         P = self.check_order(order)

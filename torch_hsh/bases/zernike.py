@@ -206,6 +206,9 @@ class KoenderinkZernike(Basis):
         out = out * RE.index_select(-1, il) * c
         return out.reshape(*lead, out.shape[-1])
 
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
+
     def num_functions(self, order):
         return len(_rows(self.check_order(order)))
 
