@@ -21,13 +21,16 @@ Blinn-Phong materials only; see ``docs/conventions_and_errata.md``).
   :func:`torch_hsh.fitting.project` at start-up), refined in ``n_phi`` (doubling) and
   ``n_theta`` until Acc(P') of the Helmholtz basis changes by less than ``--tol-aniso``
   or the rule would exceed ``--max-dirs`` directions; the estimate is printed.
-* ``--merl DIR``: the isotropic comparison on MERL ``.binary`` files (reduced rule,
-  nearest-bin lookup through :func:`torch_hsh.io.merl.read_merl` when available).
+* ``--merl DIR``: paper Fig. 6, the isotropic comparison on MERL ``.binary`` files
+  (raw BRDF, mean of the colour channels, nearest-bin lookup through
+  :func:`torch_hsh.io.merl.read_merl`, converged reduced rule), with the minimum
+  orders for 95 % and 99 %.
 
 Outputs (refuses to overwrite them without ``--overwrite``):
 ``docs/tables/compactness_isotropic.csv``, ``compactness_anisotropic.csv``,
 ``compactness_cutoff.csv``, ``compactness_summary.md``, ``docs/images/paper_compactness.png``;
-with ``--merl`` also ``compactness_merl.csv`` and ``paper_compactness_merl.png``.
+with ``--merl`` also ``compactness_merl.csv``, ``compactness_merl.md`` and
+``paper_compactness_merl.png`` (``--merl-only``: just those).
 
 Run: ``python examples/paper/compactness.py`` (about 10 minutes on one CPU core).
 """
@@ -177,28 +180,18 @@ def run_anisotropic(materials, P, tol, max_dirs, progress):
     return {"cosine": {k: np.stack(v) for k, v in res.items()}}, meta
 
 
-def load_merl(folder: Path, n_theta, n_phi, progress):
-    """Tabulate MERL materials on the reduced rule: ``names, F (M, n)``, plus the rule."""
+def merl_brdf(path: Path):
+    """A MERL file as a scalar BRDF callable (nearest-bin lookup, mean of the colour channels, 0 if unmeasured)."""
     try:
         from torch_hsh.io.merl import read_merl
     except ImportError as e:  # pragma: no cover - depends on the checkout
         raise SystemExit(f"--merl needs torch_hsh.io.merl.read_merl ({e})")
-    files = sorted(folder.glob("*.binary"))
-    if not files:
-        raise SystemExit(f"--merl: no .binary files in {folder}")
-    wi, wo, w = C.reduced_rule(n_theta, n_phi)
-    cols, names = [], []
-    for fpath in progress(files, desc="MERL files"):
-        brdf = read_merl(fpath)
-        v = brdf(wi, wo) if callable(brdf) else None
-        if v is None:
-            raise SystemExit("read_merl returned an object that is not callable as brdf(wi, wo)")
-        v = v.to(torch.float64)
-        if v.dim() == 2:
-            v = v.mean(-1)  # average of the colour channels
-        cols.append(torch.nan_to_num(v.clamp(min=0.0)))
-        names.append(fpath.stem)
-    return names, torch.stack(cols, -1), (wi, wo, w)
+    table = read_merl(path)
+
+    def f(wi, wo):
+        return table(wi, wo).to(wi.dtype).mean(-1).clamp(min=0.0)
+
+    return f
 
 
 def main(argv=None):
@@ -209,9 +202,9 @@ def main(argv=None):
                    help="grazing cutoff cos(theta) >= c for the raw BRDF of GGX, Ward and Oren-Nayar")
     p.add_argument("--tol-aniso", type=float, default=2e-3, help="target change of Acc(P'), anisotropic materials")
     p.add_argument("--max-dirs", type=int, default=6144, help="largest n_theta * n_phi of the anisotropic rule")
-    p.add_argument("--n-theta", type=int, default=48, help="GL nodes per cos(theta) for --merl (reduced rule)")
-    p.add_argument("--n-phi", type=int, default=512, help="dphi nodes for --merl (reduced rule)")
-    p.add_argument("--merl", type=Path, default=None, help="folder of MERL .binary files")
+    p.add_argument("--merl", type=Path, default=None, help="folder of MERL .binary files (paper Fig. 6)")
+    p.add_argument("--merl-only", action="store_true", help="with --merl: skip the analytic library")
+    p.add_argument("--merl-tol", type=float, default=2e-3, help="target change of Acc(P'), MERL lookups")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     C.set_threads(args.threads)
@@ -223,12 +216,20 @@ def main(argv=None):
     files = [args.tables / "compactness_isotropic.csv", args.tables / "compactness_anisotropic.csv",
              args.tables / "compactness_summary.md", args.images / "paper_compactness.png",
              args.tables / "compactness_cutoff.csv"]
+    if args.merl_only and not args.merl:
+        p.error("--merl-only needs --merl DIR")
+    if args.merl_only:
+        files = [None] * 5
     if args.merl:
-        files += [args.tables / "compactness_merl.csv", args.images / "paper_compactness_merl.png"]
-    C.prepare_outputs(files, args.overwrite)
+        files += [args.tables / "compactness_merl.csv", args.images / "paper_compactness_merl.png",
+                  args.tables / "compactness_merl.md"]
+    C.prepare_outputs([f for f in files if f is not None], args.overwrite)
     progress = (lambda it, **k: it) if args.no_progress else (lambda it, **k: tqdm(it, **k))
     t0 = time.time()
     P = args.max_order
+    if args.merl_only:
+        run_merl(args, files, P, progress)
+        return
 
     for bn in C.ANISO_BASES:  # the separable projection is the same sum as torch_hsh.fitting.project
         err = C.check_against_fitting(bn, C.material_library()[-1][1])
@@ -322,7 +323,7 @@ def main(argv=None):
     _figure(plt, files[3], iso, an, iso_names, an_names, fin_iso, P, args.cutoff)
 
     if args.merl:
-        run_merl(args, files, P, progress, plt)
+        run_merl(args, files, P, progress)
     print(f"wrote {len(files)} files in {time.time() - t0:.0f} s")
     for q in ("cosine", "brdf"):
         for bn in C.ISO_BASES:
@@ -373,33 +374,69 @@ def _figure(plt, path, iso, an, iso_names, an_names, fin_iso, P, cutoff):
     plt.close(fig)
 
 
-def run_merl(args, files, P, progress, plt):
-    names, F, (wi, wo, w) = load_merl(args.merl, args.n_theta, args.n_phi, progress)
-    energy = (F * F * w[:, None]).sum(0)
-    res = {}
-    for bn in progress(C.ISO_BASES, desc="bases (MERL)"):
-        Pb = min(P, get_basis(bn).max_order)
-        a = C.project_values(bn, Pb, wi, wo, w, F)
-        res[bn] = acc_padded(C.accuracy_from_coeffs(bn, a, energy), P)
-    hdr = ["material", "basis"] + [f"acc_P{k}" for k in range(P + 1)] + ["min_order_95", "min_order_99"]
+def run_merl(args, files, P, progress):
+    """Paper Fig. 6 on a folder of MERL files: Acc(P) per isotropic basis, minimum orders, figure."""
+    import warnings
+
+    import matplotlib.pyplot as plt
+
+    warnings.filterwarnings("ignore", "Mean of empty slice", RuntimeWarning)  # H-basis columns beyond order 2
+
+    paths = sorted(args.merl.glob("*.binary"))
+    if not paths:
+        raise SystemExit(f"--merl: no .binary files in {args.merl}")
+    res = {bn: [] for bn in C.ISO_BASES}
+    meta = []
+    for path in progress(paths, desc="MERL files"):
+        acc, info = converged_iso(merl_brdf(path), P, args.merl_tol, None)
+        for bn in C.ISO_BASES:
+            res[bn].append(acc[bn])
+        meta.append((info["error_estimate"], info["n_theta"], info["n_phi"]))
+    names = [p.stem for p in paths]
+    res = {k: np.stack(v) for k, v in res.items()}
+    hdr = ["material", "basis"] + [f"acc_P{k}" for k in range(P + 1)] + [
+        "min_order_95", "min_order_99", "error_estimate", "n_theta", "n_phi"]
     rows = []
     for i, nm in enumerate(names):
         for bn in C.ISO_BASES:
             r = res[bn][i]
-            rows.append([nm, bn] + [float(v) for v in r] + [min_order(r, 0.95), min_order(r, 0.99)])
+            rows.append([nm, bn] + [float(v) for v in r] + [min_order(r, 0.95), min_order(r, 0.99)] + list(meta[i]))
     C.write_csv(files[5], hdr, rows)
-    fig, ax = plt.subplots(figsize=(7, 5))
+    with open(files[7], "w") as fh:
+        fh.write(f"# Paper Fig. 6 on {len(names)} MERL files in `{args.merl}`\n\n"
+                 "Raw BRDF f (mean of the colour channels, nearest-bin lookup), reduced rule refined until Acc(P') of "
+                 f"the Helmholtz basis changes by less than {args.merl_tol:g}. Minimum order of the Helmholtz basis:\n\n")
+        _table(fh, ["material", "Acc(2)", "Acc(4)", "Acc(8)", "min P (95%)", "min P (99%)", "error estimate"],
+               [[nm, res["helmholtz_isotropic"][i][2], res["helmholtz_isotropic"][i][4], res["helmholtz_isotropic"][i][8],
+                 min_order(res["helmholtz_isotropic"][i], 0.95), min_order(res["helmholtz_isotropic"][i], 0.99),
+                 meta[i][0]] for i, nm in enumerate(names)])
+        fh.write("\nMean Acc(P) per basis:\n\n")
+        _table(fh, ["basis", "Acc(2)", "Acc(4)", "Acc(8)"],
+               [[bn] + [float(np.nanmean(res[bn][:, k])) for k in (2, 4, 8)] for bn in C.ISO_BASES])
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
     Ps = np.arange(P + 1)
     for bn in C.ISO_BASES:
-        ax.plot(Ps, np.mean(res[bn], 0), label=C.LABEL[bn], **C.STYLE[bn])
-    ax.set_xlabel("P")
-    ax.set_ylabel("mean Acc(P)")
-    ax.set_title(f"MERL ({len(names)} materials)")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
+        axes[0].plot(Ps, np.nanmean(res[bn], 0), label=C.LABEL[bn], **C.STYLE[bn])
+    axes[0].set_xlabel("truncation order P")
+    axes[0].set_ylabel("mean Acc(P) (raw BRDF)")
+    axes[0].set_title(f"MERL files in {args.merl.name} ({len(names)} materials)", fontsize=10)
+    axes[0].legend(fontsize=8, loc="lower right")
+    axes[0].set_ylim(0, 1.01)
+    axes[0].grid(alpha=0.3)
+    y = np.arange(len(names))
+    for off, thr, col in ((-0.2, 0.95, "tab:gray"), (0.2, 0.99, "tab:purple")):
+        mo = [min_order(r, thr) for r in res["helmholtz_isotropic"]]
+        axes[1].barh(y + off, [P + 1 if math.isnan(v) else v for v in mo], 0.4, color=col, label=f"{thr:.0%}")
+    axes[1].set_yticks(y)
+    axes[1].set_yticklabels(names, fontsize=8)
+    axes[1].invert_yaxis()
+    axes[1].set_xlabel(f"minimum order P, Helmholtz isotropic ({P + 1} = not reached)")
+    axes[1].legend(fontsize=8)
+    axes[1].grid(alpha=0.3, axis="x")
     fig.tight_layout()
     fig.savefig(files[6], dpi=110)
     plt.close(fig)
+    print(f"MERL: wrote {files[5]}, {files[6]}, {files[7]}")
 
 
 def _med(v):
