@@ -403,7 +403,9 @@ def run_merl(args, files, P, progress):
             rows.append([nm, bn] + [float(v) for v in r] + [min_order(r, 0.95), min_order(r, 0.99)] + list(meta[i]))
     C.write_csv(files[5], hdr, rows)
     with open(files[7], "w") as fh:
-        fh.write(f"# Paper Fig. 6 on {len(names)} MERL files in `{args.merl}`\n\n"
+        where = args.merl.resolve()
+        where = where.relative_to(C.ROOT) if C.ROOT in where.parents else where
+        fh.write(f"# Paper Fig. 6 on {len(names)} MERL files in `{where}`\n\n"
                  "Raw BRDF f (mean of the colour channels, nearest-bin lookup), reduced rule refined until Acc(P') of "
                  f"the Helmholtz basis changes by less than {args.merl_tol:g}. Minimum order of the Helmholtz basis:\n\n")
         _table(fh, ["material", "Acc(2)", "Acc(4)", "Acc(8)", "min P (95%)", "min P (99%)", "error estimate"],
@@ -419,7 +421,7 @@ def run_merl(args, files, P, progress):
         axes[0].plot(Ps, np.nanmean(res[bn], 0), label=C.LABEL[bn], **C.STYLE[bn])
     axes[0].set_xlabel("truncation order P")
     axes[0].set_ylabel("mean Acc(P) (raw BRDF)")
-    axes[0].set_title(f"MERL files in {args.merl.name} ({len(names)} materials)", fontsize=10)
+    axes[0].set_title(f"MERL files in {args.merl.resolve().name}/ ({len(names)} materials)", fontsize=10)
     axes[0].legend(fontsize=8, loc="lower right")
     axes[0].set_ylim(0, 1.01)
     axes[0].grid(alpha=0.3)
