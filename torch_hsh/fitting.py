@@ -38,6 +38,12 @@ Conventions
   only; it is **required** where the integral diverges, e.g. :math:`\iint f^2` of
   the GGX, Ward, Oren--Nayar and Torrance--Sparrow models (they grow like
   :math:`1/\cos` at grazing angles), which the refinement detects and reports.
+  Cost: sharp lobes need many azimuths (the azimuthal width of a specular lobe
+  shrinks towards the grazing mirror configuration; ``n_phi`` of 1000-4000 for GGX
+  roughness 0.3), which the azimuthal low-pass keeps cheap (seconds). A BRDF with
+  an integrable grazing singularity (raw GGX: :math:`\int f B` is finite) converges
+  only algebraically in ``n_theta`` (about 30 s at P = 8 for raw GGX roughness 0.7);
+  a ``grazing_cutoff`` makes it fast again (about 1 s).
 * Singularities at grazing angles: Gauss--Legendre nodes are strictly inside
   ``(0, 1)``, so ``z = 0`` is never evaluated and integrable singularities
   (e.g. :math:`z^{-1/2}`) give finite sums that converge as ``n_theta``
