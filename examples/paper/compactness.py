@@ -368,7 +368,7 @@ def _figure(plt, path, iso, an, iso_names, an_names, fin_iso, P, cutoff):
     ax.set_xlabel(f"minimum order P for Acc >= 95 % ({P + 1} = not reached by {P})")
     ax.set_title("(d) Helmholtz isotropic: minimum order per material", fontsize=10)
     ax.grid(alpha=0.3, axis="x")
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="upper right")  # the top rows (diffuse materials) have short bars
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
