@@ -20,7 +20,9 @@ from torch_hsh.bases.zernike import zernike_indices, zernike_mirror_coefficients
 
 DT = torch.float64
 COMPARISON = ["westin_sh", "westin_sh_isotropic", "gautron_hsh", "gautron_hsh_isotropic",
-              "koenderink_zernike", "hbasis", "hbasis_isotropic"]
+              "koenderink_zernike", "koenderink_helmholtz", "koenderink_zernike_product", "hbasis",
+              "hbasis_isotropic"]
+NON_RECIPROCAL = ("gautron_hsh", "gautron_hsh_isotropic", "koenderink_zernike_product")
 
 
 def dir_grid(n_z: int, n_phi: int, sphere: bool = False):
@@ -136,7 +138,8 @@ def test_orthonormal_product_bases(name, order):
 @pytest.mark.parametrize(
     "name,order",
     [("westin_sh_isotropic", 4), ("gautron_hsh_isotropic", 4), ("koenderink_zernike", 4),
-     ("koenderink_zernike", 8), ("hbasis_isotropic", 2), ("helmholtz_isotropic", 4)],
+     ("koenderink_zernike", 8), ("koenderink_helmholtz", 5), ("koenderink_zernike_product", 4),
+     ("koenderink_zernike_product", 7), ("hbasis_isotropic", 2), ("helmholtz_isotropic", 4)],
 )
 def test_orthonormal_isotropic_bases(name, order):
     b = get_basis(name)
@@ -204,7 +207,7 @@ def test_real_sh_azimuth_convention_matches_hsh():
 
 
 # --------------------------------------------------------------------------- reciprocity and isotropy
-@pytest.mark.parametrize("name", [n for n in COMPARISON if not n.startswith("gautron")])
+@pytest.mark.parametrize("name", [n for n in COMPARISON if n not in NON_RECIPROCAL])
 def test_reciprocity_holds(name):
     b = get_basis(name)
     gen = torch.Generator().manual_seed(5)
@@ -215,8 +218,8 @@ def test_reciprocity_holds(name):
     torch.testing.assert_close(b.evaluate(wi, wo, P), b.evaluate(wo, wi, P), rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("name", ["gautron_hsh", "gautron_hsh_isotropic"])
-def test_reciprocity_fails_for_gautron(name):
+@pytest.mark.parametrize("name", NON_RECIPROCAL)
+def test_reciprocity_fails_for_unsymmetrised_products(name):
     b = get_basis(name)
     assert not b.reciprocal
     gen = torch.Generator().manual_seed(6)
@@ -265,7 +268,8 @@ def test_product_bases_are_not_isotropic(name):
 @pytest.mark.parametrize(
     "iso,full,order",
     [("westin_sh_isotropic", "westin_sh", 2), ("gautron_hsh_isotropic", "gautron_hsh", 2),
-     ("hbasis_isotropic", "hbasis", 2), ("helmholtz_isotropic", "helmholtz_anisotropic", 2)],
+     ("hbasis_isotropic", "hbasis", 2), ("helmholtz_isotropic", "helmholtz_anisotropic", 2),
+     ("koenderink_helmholtz", "koenderink_zernike_product", 4)],
 )
 def test_isotropic_variant_lies_in_span_of_full_basis(iso, full, order):
     """Each isotropic function is a combination of the anisotropic functions of the same order."""
@@ -422,3 +426,40 @@ def test_helmholtz_mirror_spectrum_erratum2():
     expect = torch.where(p == r, torch.where(q == 0, torch.ones_like(sign), math.sqrt(2) * sign), torch.zeros_like(sign))
     torch.testing.assert_close(a, expect, rtol=0, atol=1e-12)
     assert float(a[0]) > 0.9  # the printed value 1/2 would fail here
+
+
+@pytest.mark.parametrize("name", sorted(set(COMPARISON) | {"helmholtz_isotropic", "helmholtz_anisotropic"}))
+def test_azimuthal_degree_is_a_true_bound(name):
+    """Every function up to P is a trigonometric polynomial of degree <= azimuthal_degree(P) in phi_i and phi_o."""
+    b = get_basis(name)
+    P = min(3, b.max_order)
+    Dg = b.azimuthal_degree(P)
+    assert Dg == P
+    n = 4 * P + 8
+    phi = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
+    for zi, zo in ((0.3, 0.8), (0.9, 0.15)):
+        si, so = math.sqrt(1 - zi * zi), math.sqrt(1 - zo * zo)
+        wo = torch.stack([so * torch.cos(phi), so * torch.sin(phi), torch.full_like(phi, zo)], -1)
+        for a in (0.0, 1.1):  # one direction fixed, the azimuth of the other varies (both argument orders)
+            wi = torch.tensor([si * math.cos(a), si * math.sin(a), zi], dtype=torch.float64).expand(n, 3)
+            for B in (b.evaluate(wi, wo, P), b.evaluate(wo, wi, P)):
+                spec = torch.fft.rfft(B, dim=0).abs()
+                assert float(spec[Dg + 1:].max()) < 1e-10 * max(1.0, float(spec.max()))
+
+
+def test_koenderink_helmholtz_is_the_symmetrised_product_basis():
+    """koenderink_helmholtz = koenderink_zernike (alias); each function is (Z_nm + Z_mn)/sqrt(2 + 2 delta)."""
+    from torch_hsh.bases.zernike import zernike_product_indices
+
+    h, z, prod = get_basis("koenderink_helmholtz"), get_basis("koenderink_zernike"), get_basis("koenderink_zernike_product")
+    assert h.reciprocal and h.isotropic and not prod.reciprocal
+    gen = torch.Generator().manual_seed(12)
+    wi, wo = random_dirs(30, gen), random_dirs(30, gen)
+    P = 4
+    H = h.evaluate(wi, wo, P)
+    torch.testing.assert_close(H, z.evaluate(wi, wo, P), rtol=0, atol=0)
+    Zp = prod.evaluate(wi, wo, P)
+    pos = {tuple(r): i for i, r in enumerate(zernike_product_indices(P).tolist())}
+    for col, (n, m, l) in enumerate(zernike_indices(P).tolist()):
+        sym = (Zp[:, pos[(n, m, l, 0)]] + Zp[:, pos[(m, n, l, 0)]]) / math.sqrt(2 + 2 * (n == m))
+        torch.testing.assert_close(H[:, col], sym, rtol=1e-11, atol=1e-12)

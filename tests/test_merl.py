@@ -374,3 +374,36 @@ def test_full_size_ggx_file_round_trip(tmp_path):
     ref = model(wi, wo)
     assert (((r.lookup(wi, wo, interpolation="trilinear") - ref).abs() / ref).max()) < 0.01
     assert (((r(wi, wo) - ref).abs() / ref).max()) < 0.15
+
+
+def test_merl_round_trip_accuracy_within_binning_bound(tmp_path):
+    """Acc(P) through a written/read MERL table matches the analytic projection within the binning bound.
+
+    On a rule with B^T W B = I: | ||a_g|| - ||a_f|| | <= ||a_d|| and | ||g|| - ||f|| | <= ||d|| (d = g - f),
+    which bounds sqrt(Acc_g) in terms of the binning error d.
+    """
+    from torch_hsh import fitting as F
+    from torch_hsh._integrate import rule_sums
+    from torch_hsh.bases import get_basis
+    from torch_hsh.brdf import BlinnPhong
+
+    model = BlinnPhong(0.3, 0.5, 10.0)
+    path = write_merl(tmp_path / "bp.binary", tabulate_merl(model, (30, 30, 60)))
+    table = read_merl(path)
+    f = lambda wi, wo: model(wi, wo)[..., 0]  # noqa: E731
+    g = lambda wi, wo: table(wi, wo).to(wi.dtype).mean(-1)  # noqa: E731
+    b, P = get_basis("helmholtz_isotropic"), 6
+
+    def sums(h):
+        return rule_sums(h, b, P, 20, 96, True, 0.0, True, True, torch.float64, None)
+
+    rf, rg, rd = sums(f), sums(g), sums(lambda wi, wo: g(wi, wo) - f(wi, wo))
+    acc = lambda r: F.energy_accuracy(r.a, r.E, basis=b)[0]  # noqa: E731
+    nf, nd = rf.E[0].sqrt(), rd.E[0].sqrt()
+    af, ad = acc(rf).sqrt() * nf, acc(rd).sqrt() * nd
+    lo = ((af - ad).clamp(min=0) / (nf + nd)) ** 2
+    hi = ((af + ad) / (nf - nd)) ** 2
+    acc_g = acc(rg)
+    assert float(nd / nf) < 0.2  # the binning error is small but not zero
+    assert bool(((acc_g >= lo) & (acc_g <= hi)).all())
+    assert float((acc_g - acc(rf)).abs().max()) > 1e-4  # the lookup is not the analytic BRDF

@@ -21,6 +21,9 @@ from .bases import available_bases, get_basis
 from .nn import HSH, HelmholtzBRDF
 from .quadrature import direction_quadrature, gauss_legendre, isotropic_quadrature, monte_carlo_directions
 from .fitting import (
+    ConvergenceError,
+    ConvergenceWarning,
+    brdf_accuracy,
     brdf_energy,
     directional_albedo,
     energy_accuracy,

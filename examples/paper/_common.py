@@ -27,13 +27,16 @@ from torch_hsh.bases.westin import pair_table, real_sh  # noqa: E402
 from torch_hsh.quadrature import direction_quadrature, isotropic_directions, isotropic_quadrature  # noqa: E402
 
 #: Isotropic bases compared in paper Figs. 5-6 (ours first).
-ISO_BASES = ["helmholtz_isotropic", "koenderink_zernike", "gautron_hsh_isotropic", "westin_sh_isotropic", "hbasis_isotropic"]
+ISO_BASES = ["helmholtz_isotropic", "koenderink_helmholtz", "koenderink_zernike_product", "gautron_hsh_isotropic",
+             "westin_sh_isotropic", "hbasis_isotropic"]
 #: Anisotropic bases compared in paper Fig. 7.
 ANISO_BASES = ["helmholtz_anisotropic", "gautron_hsh", "westin_sh", "hbasis"]
 LABEL = {
     "helmholtz_isotropic": "Helmholtz HSH (ours)",
     "helmholtz_anisotropic": "Helmholtz HSH (ours)",
     "koenderink_zernike": "Koenderink-van Doorn Zernike",
+    "koenderink_helmholtz": "KvD Helmholtz (Zernike, reciprocal)",
+    "koenderink_zernike_product": "KvD Zernike product (non-reciprocal)",
     "gautron_hsh_isotropic": "Gautron HSH product",
     "gautron_hsh": "Gautron HSH product",
     "westin_sh_isotropic": "Westin SH (sphere)",
@@ -252,3 +255,18 @@ def set_threads(n):
     if n:
         torch.set_num_threads(int(n))
     os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+#: Distinct marker / line style per basis (readable in print and where curves coincide).
+STYLE = {
+    "helmholtz_isotropic": dict(color="k", marker="o", ls="-", lw=2.2, ms=7, mfc="none"),
+    "helmholtz_anisotropic": dict(color="k", marker="o", ls="-", lw=2.2, ms=7, mfc="none"),
+    "gautron_hsh_isotropic": dict(color="tab:orange", marker="x", ls="--", lw=1.4, ms=7),
+    "gautron_hsh": dict(color="tab:orange", marker="x", ls="--", lw=1.4, ms=7),
+    "koenderink_helmholtz": dict(color="tab:blue", marker="s", ls="-.", lw=1.4, ms=5),
+    "koenderink_zernike_product": dict(color="tab:cyan", marker="+", ls=":", lw=1.8, ms=9),
+    "westin_sh_isotropic": dict(color="tab:green", marker="^", ls="-", lw=1.2, ms=5),
+    "westin_sh": dict(color="tab:green", marker="^", ls="-", lw=1.2, ms=5),
+    "hbasis_isotropic": dict(color="tab:red", marker="D", ls="-", lw=1.2, ms=5),
+    "hbasis": dict(color="tab:red", marker="D", ls="-", lw=1.2, ms=5),
+}

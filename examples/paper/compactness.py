@@ -8,25 +8,31 @@ and the raw BRDF ``f`` (whose squared integral diverges at grazing angles for th
 GGX, Ward and Oren-Nayar models, so its raw-BRDF averages use Lambertian and
 Blinn-Phong materials only; see ``docs/conventions_and_errata.md``).
 
-* Isotropic materials (25): the isotropic bases (ours, Zernike, Gautron, Westin,
-  H-basis), projected with the reduced 3-D isotropic rule
-  (:func:`torch_hsh.quadrature.isotropic_quadrature`).
-* Anisotropic Ward materials (6): the anisotropic/product bases, projected
-  separably, ``C = H^T diag(w) F diag(w) H`` on a direction product rule
-  (checked against :func:`torch_hsh.fitting.project` at start-up); and the isotropic
-  bases, which can only capture the **azimuthal average** of the BRDF (an isotropic
-  basis function is invariant under a common rotation of wi and wo, so its
-  coefficient equals that of the rotation-averaged BRDF), projected from that
-  average; their Acc is bounded by the energy fraction of the average.
-* ``--merl DIR``: the isotropic comparison on MERL ``.binary`` files (reduced rule,
-  nearest-bin lookup through :func:`torch_hsh.io.merl.read_merl` when available).
+* Isotropic materials (25): the isotropic bases (ours, both Koenderink--van Doorn
+  bases, Gautron, Westin, H-basis) on the reduced 3-D rule, **converged**: the rule
+  of every material and quantity is refined by :func:`torch_hsh.fitting.brdf_accuracy`
+  until Acc(P') of the Helmholtz basis changes by less than ``--tol`` (default 5e-4)
+  for every P' <= 10, and that rule is then used for every basis (all of them see the
+  BRDF through the same azimuthal Fourier modes |q| <= 10). The error estimate is
+  written to the tables. The raw BRDF of the GGX, Ward and Oren-Nayar models needs a
+  grazing cutoff (``--cutoff``, default cos(theta) >= 0.01); a cutoff study is written too.
+* Anisotropic Ward materials (6): the product bases, projected separably,
+  ``C = H^T diag(w) F diag(w) H`` on a direction product rule (checked against
+  :func:`torch_hsh.fitting.project` at start-up), refined in ``n_phi`` (doubling) and
+  ``n_theta`` until Acc(P') of the Helmholtz basis changes by less than ``--tol-aniso``
+  or the rule would exceed ``--max-dirs`` directions; the estimate is printed.
+* ``--merl DIR``: paper Fig. 6, the isotropic comparison on MERL ``.binary`` files
+  (raw BRDF, mean of the colour channels, nearest-bin lookup through
+  :func:`torch_hsh.io.merl.read_merl`, converged reduced rule), with the minimum
+  orders for 95 % and 99 %.
 
 Outputs (refuses to overwrite them without ``--overwrite``):
 ``docs/tables/compactness_isotropic.csv``, ``compactness_anisotropic.csv``,
-``compactness_summary.md``, ``docs/images/paper_compactness.png``; with ``--merl``
-also ``compactness_merl.csv`` and ``paper_compactness_merl.png``.
+``compactness_cutoff.csv``, ``compactness_summary.md``, ``docs/images/paper_compactness.png``;
+with ``--merl`` also ``compactness_merl.csv``, ``compactness_merl.md`` and
+``paper_compactness_merl.png`` (``--merl-only``: just those).
 
-Run: ``python examples/paper/compactness.py`` (about 2-4 minutes on 2 CPU cores).
+Run: ``python examples/paper/compactness.py`` (about 10 minutes on one CPU core).
 """
 from __future__ import annotations
 
@@ -43,6 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 from torch_hsh.bases import get_basis  # noqa: E402
+from torch_hsh.bases.westin import pair_table  # noqa: E402
 from torch_hsh.quadrature import direction_quadrature  # noqa: E402
 
 THRESH = (0.95, 0.99)
@@ -60,84 +67,144 @@ def acc_padded(acc: torch.Tensor, P: int) -> np.ndarray:
     return out
 
 
-def run_isotropic(materials, P, n_theta, n_phi, progress):
-    """Acc for both quantities: ``{"brdf": {basis: (n, P+1)}, "cosine": {...}}`` (one basis evaluation)."""
-    wi, wo, w = C.reduced_rule(n_theta, n_phi)
-    F = torch.stack([f(wi, wo) for _, f in materials], -1)
-    F = torch.cat([F, F * (wi[:, 2] * wo[:, 2])[:, None]], -1)  # raw | cosine-weighted
-    energy = (F * F * w[:, None]).sum(0)
-    n = len(materials)
-    res = {"brdf": {}, "cosine": {}}
-    for bn in progress(C.ISO_BASES, desc="isotropic bases"):
-        Pb = min(P, get_basis(bn).max_order)
-        a = C.project_values(bn, Pb, wi, wo, w, F)
-        acc = acc_padded(C.accuracy_from_coeffs(bn, a, energy), P)
-        res["brdf"][bn], res["cosine"][bn] = acc[:n], acc[n:]
-    return res
+def converged_iso(f, P, tol, cutoff):
+    """Acc ``{basis: (P+1,)}`` of one isotropic BRDF on the rule converged for the Helmholtz basis, and the info."""
+    from torch_hsh.fitting import brdf_accuracy, energy_accuracy
+    from torch_hsh._integrate import rule_sums
+
+    _, info = brdf_accuracy(f, P, "helmholtz_isotropic", tol=tol, grazing_cutoff=cutoff, strict=False,
+                            return_info=True)
+    out = {}
+    for bn in C.ISO_BASES:
+        b = get_basis(bn)
+        Pb = min(P, b.max_order)
+        r = rule_sums(f, b, Pb, info["n_theta"], info["n_phi"], True, cutoff or 0.0, True, True, torch.float64, None)
+        out[bn] = acc_padded(energy_accuracy(r.a, r.E, basis=b), P)[0]
+    return out, info
 
 
-def run_anisotropic(materials, P, n_theta, n_phi, n_theta_iso, n_phi_iso, progress):
-    d, wd = direction_quadrature(n_theta, n_phi, dtype=torch.float64)
-    N = d.shape[0]
-    wi4 = d[:, None, :].expand(N, N, 3).reshape(-1, 3)
-    wo4 = d[None, :, :].expand(N, N, 3).reshape(-1, 3)
-    W4 = (wd[:, None] * wd[None, :]).reshape(-1)
-    cos4 = wi4[:, 2] * wo4[:, 2]
-    wi, wo, w = C.reduced_rule(n_theta_iso, n_phi_iso)
-    res = {q: {bn: [] for bn in C.ANISO_BASES + C.ISO_BASES} for q in ("brdf", "cosine")}
-    for name, f in progress(materials, desc="anisotropic materials"):
-        Fraw = f(wi4, wo4)
-        Fbar_raw = C.azimuthal_average(f, wi, wo)  # rotations about z keep cos(theta)
-        for q in ("brdf", "cosine"):
-            Fm = Fraw * cos4 if q == "cosine" else Fraw
-            E = float((Fm * Fm * W4).sum())
-            Fm = Fm.reshape(N, N)
-            for bn in C.ANISO_BASES:
-                Pb = min(P, get_basis(bn).max_order)
-                a, lab = C.separable_coefficients(bn, Pb, d, wd, Fm)
-                cum = torch.cumsum(torch.stack([(a[lab == p] ** 2).sum() for p in range(Pb + 1)]), 0) / E
-                res[q][bn].append(acc_padded(cum[None], P)[0])
-            Fbar = (Fbar_raw * (wi[:, 2] * wo[:, 2]) if q == "cosine" else Fbar_raw)[:, None]
+def run_isotropic(materials, P, tol, cutoff, progress):
+    """``{"brdf": {basis: (n, P+1)}, "cosine": {...}}``, the error estimates and rule sizes per material."""
+    res = {"brdf": {bn: [] for bn in C.ISO_BASES}, "cosine": {bn: [] for bn in C.ISO_BASES}}
+    meta = {"brdf": [], "cosine": []}
+    for name, f in progress(materials, desc="isotropic materials"):
+        for q in ("cosine", "brdf"):
+            g = C.cosine_weighted(f) if q == "cosine" else f
+            c = None if (q == "cosine" or C.finite_energy(name)) else cutoff
+            acc, info = converged_iso(g, P, tol, c)
             for bn in C.ISO_BASES:
-                Pb = min(P, get_basis(bn).max_order)
-                a = C.project_values(bn, Pb, wi, wo, w, Fbar)
-                acc = C.accuracy_from_coeffs(bn, a, torch.tensor([E], dtype=a.dtype))
-                res[q][bn].append(acc_padded(acc, P)[0])
-    return {q: {k: np.stack(v) for k, v in r.items()} for q, r in res.items()}
+                res[q][bn].append(acc[bn])
+            meta[q].append((info["error_estimate"], info["n_theta"], info["n_phi"], c))
+    return {q: {k: np.stack(v) for k, v in r.items()} for q, r in res.items()}, meta
 
 
-def load_merl(folder: Path, n_theta, n_phi, progress):
-    """Tabulate MERL materials on the reduced rule: ``names, F (M, n)``, plus the rule."""
+def cutoff_study(materials, P, tol, cutoffs, progress):
+    """Raw-BRDF Acc(2, 4, 8) of the Helmholtz basis against the grazing cutoff (rows for the CSV)."""
+    from torch_hsh.fitting import brdf_accuracy
+
+    rows = []
+    for name, f in progress(materials, desc="cutoff study"):
+        for c in cutoffs:
+            acc, info = brdf_accuracy(f, P, "helmholtz_isotropic", tol=tol, grazing_cutoff=c, strict=False,
+                                      return_info=True)
+            rows.append([name, c] + [float(acc[k]) for k in (0, 2, 4, 8)] + [info["error_estimate"]])
+    return rows
+
+
+def _separable_acc(f, P, nt, nphi, cosine, block=512):
+    """Acc ``{basis: (P+1,)}`` of the product bases on the (nt x nphi)^2 rule, without storing F."""
+    d, wd = direction_quadrature(nt, nphi, dtype=torch.float64)
+    N = d.shape[0]
+    tabs = {}
+    for bn in C.ANISO_BASES:
+        kind, _ = C.ANISO_KIND[bn]
+        Pb = min(P, get_basis(bn).max_order)
+        H, labels = C.per_direction_table(kind, d, Pb)
+        tabs[bn] = (H * wd[:, None], labels, Pb, torch.zeros(H.shape[1], H.shape[1], dtype=torch.float64))
+    E = 0.0
+    for s in range(0, N, block):
+        di = d[s : s + block]
+        wi = di[:, None, :].expand(-1, N, 3).reshape(-1, 3)
+        wo = d[None].expand(di.shape[0], N, 3).reshape(-1, 3)
+        Fm = f(wi, wo)
+        if cosine:
+            Fm = Fm * wi[:, 2] * wo[:, 2]
+        Fm = Fm.reshape(di.shape[0], N)
+        E += float((Fm * Fm * wd[s : s + block, None] * wd[None, :]).sum())
+        for bn, (Hw, _, _, Cm) in tabs.items():
+            Cm += Hw[s : s + block].T @ (Fm @ Hw)
+    out = {}
+    for bn, (Hw, labels, Pb, Cm) in tabs.items():
+        _, sym = C.ANISO_KIND[bn]
+        j, k, c, lab = pair_table(labels, Pb, sym)
+        j, k = torch.tensor(j), torch.tensor(k)
+        a = torch.tensor(c, dtype=Cm.dtype) * (Cm[j, k] + Cm[k, j]) if sym else Cm[j, k]
+        lab = torch.tensor(lab)
+        cum = torch.cumsum(torch.stack([(a[lab == p] ** 2).sum() for p in range(Pb + 1)]), 0) / E
+        out[bn] = acc_padded(cum[None], P)[0]
+    return out
+
+
+def run_anisotropic(materials, P, tol, max_dirs, progress):
+    """Refine (n_theta, n_phi) per material until Acc of the Helmholtz basis changes by < tol (or max_dirs)."""
+    res = {bn: [] for bn in C.ANISO_BASES}
+    meta = []
+    for name, f in progress(materials, desc="anisotropic materials"):
+        nt, nphi = 16, 32
+        cur = _separable_acc(f, P, nt, nphi, True)
+        est = float("inf")
+        while True:
+            if nt * 2 * nphi > max_dirs:
+                break
+            fine = _separable_acc(f, P, nt, 2 * nphi, True)
+            e_phi = float(np.abs(fine["helmholtz_anisotropic"] - cur["helmholtz_anisotropic"]).max())
+            cur, nphi = fine, 2 * nphi
+            if e_phi > tol / 2:
+                est = e_phi
+                continue
+            nt2 = int(math.ceil(1.5 * nt))
+            if nt2 * nphi > max_dirs:
+                est = e_phi
+                break
+            fine = _separable_acc(f, P, nt2, nphi, True)
+            e_t = float(np.abs(fine["helmholtz_anisotropic"] - cur["helmholtz_anisotropic"]).max())
+            cur, nt = fine, nt2
+            est = e_phi + e_t
+            if e_t <= tol / 2:
+                break
+        for bn in C.ANISO_BASES:
+            res[bn].append(cur[bn])
+        meta.append((est, nt, nphi))
+        print(f"  {name}: Acc(2,4,8) = {cur['helmholtz_anisotropic'][[2, 4, 8]].round(4).tolist()} "
+              f"(n_theta={nt}, n_phi={nphi}, change of the last refinement {est:.2g})", flush=True)
+    return {"cosine": {k: np.stack(v) for k, v in res.items()}}, meta
+
+
+def merl_brdf(path: Path):
+    """A MERL file as a scalar BRDF callable (nearest-bin lookup, mean of the colour channels, 0 if unmeasured)."""
     try:
         from torch_hsh.io.merl import read_merl
     except ImportError as e:  # pragma: no cover - depends on the checkout
         raise SystemExit(f"--merl needs torch_hsh.io.merl.read_merl ({e})")
-    files = sorted(folder.glob("*.binary"))
-    if not files:
-        raise SystemExit(f"--merl: no .binary files in {folder}")
-    wi, wo, w = C.reduced_rule(n_theta, n_phi)
-    cols, names = [], []
-    for fpath in progress(files, desc="MERL files"):
-        brdf = read_merl(fpath)
-        v = brdf(wi, wo) if callable(brdf) else None
-        if v is None:
-            raise SystemExit("read_merl returned an object that is not callable as brdf(wi, wo)")
-        v = v.to(torch.float64)
-        if v.dim() == 2:
-            v = v.mean(-1)  # average of the colour channels
-        cols.append(torch.nan_to_num(v.clamp(min=0.0)))
-        names.append(fpath.stem)
-    return names, torch.stack(cols, -1), (wi, wo, w)
+    table = read_merl(path)
+
+    def f(wi, wo):
+        return table(wi, wo).to(wi.dtype).mean(-1).clamp(min=0.0)
+
+    return f
 
 
 def main(argv=None):
     p = C.base_parser(__doc__.split("\n")[0])
     p.add_argument("--max-order", type=int, default=10)
-    p.add_argument("--n-theta", type=int, default=32, help="GL nodes per cos(theta), reduced isotropic rule")
-    p.add_argument("--n-phi", type=int, default=64, help="dphi nodes, reduced isotropic rule")
-    p.add_argument("--n-theta-4d", type=int, default=20, help="GL nodes per direction, anisotropic rule")
-    p.add_argument("--n-phi-4d", type=int, default=40, help="azimuths per direction, anisotropic rule")
-    p.add_argument("--merl", type=Path, default=None, help="folder of MERL .binary files")
+    p.add_argument("--tol", type=float, default=5e-4, help="target change of Acc(P'), isotropic materials")
+    p.add_argument("--cutoff", type=float, default=0.01,
+                   help="grazing cutoff cos(theta) >= c for the raw BRDF of GGX, Ward and Oren-Nayar")
+    p.add_argument("--tol-aniso", type=float, default=2e-3, help="target change of Acc(P'), anisotropic materials")
+    p.add_argument("--max-dirs", type=int, default=6144, help="largest n_theta * n_phi of the anisotropic rule")
+    p.add_argument("--merl", type=Path, default=None, help="folder of MERL .binary files (paper Fig. 6)")
+    p.add_argument("--merl-only", action="store_true", help="with --merl: skip the analytic library")
+    p.add_argument("--merl-tol", type=float, default=2e-3, help="target change of Acc(P'), MERL lookups")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     C.set_threads(args.threads)
@@ -147,13 +214,22 @@ def main(argv=None):
     import matplotlib.pyplot as plt
 
     files = [args.tables / "compactness_isotropic.csv", args.tables / "compactness_anisotropic.csv",
-             args.tables / "compactness_summary.md", args.images / "paper_compactness.png"]
+             args.tables / "compactness_summary.md", args.images / "paper_compactness.png",
+             args.tables / "compactness_cutoff.csv"]
+    if args.merl_only and not args.merl:
+        p.error("--merl-only needs --merl DIR")
+    if args.merl_only:
+        files = [None] * 5
     if args.merl:
-        files += [args.tables / "compactness_merl.csv", args.images / "paper_compactness_merl.png"]
-    C.prepare_outputs(files, args.overwrite)
+        files += [args.tables / "compactness_merl.csv", args.images / "paper_compactness_merl.png",
+                  args.tables / "compactness_merl.md"]
+    C.prepare_outputs([f for f in files if f is not None], args.overwrite)
     progress = (lambda it, **k: it) if args.no_progress else (lambda it, **k: tqdm(it, **k))
     t0 = time.time()
     P = args.max_order
+    if args.merl_only:
+        run_merl(args, files, P, progress)
+        return
 
     for bn in C.ANISO_BASES:  # the separable projection is the same sum as torch_hsh.fitting.project
         err = C.check_against_fitting(bn, C.material_library()[-1][1])
@@ -162,25 +238,33 @@ def main(argv=None):
     lib = C.material_library()
     iso_names = [n for n, _, iso_ in lib if iso_]
     an_names = [n for n, _, iso_ in lib if not iso_]
-    iso = run_isotropic([(n, C.as_scalar_brdf(m)) for n, m, i in lib if i], P, args.n_theta, args.n_phi, progress)
-    an = run_anisotropic([(n, C.as_scalar_brdf(m)) for n, m, i in lib if not i], P, args.n_theta_4d, args.n_phi_4d,
-                         args.n_theta, args.n_phi, progress)
+    iso_mats = [(n, C.as_scalar_brdf(m)) for n, m, i in lib if i]
+    iso, iso_meta = run_isotropic(iso_mats, P, args.tol, args.cutoff, progress)
+    t_iso = time.time() - t0
+    cut_rows = cutoff_study([m for m in iso_mats if m[0] in ("ggx_r0.5_f0.04", "ward_iso_a0.25", "oren_nayar_s0.5")],
+                            8, args.tol, (0.1, 0.03, 0.01, 0.003), progress)
+    an, an_meta = run_anisotropic([(n, C.as_scalar_brdf(m)) for n, m, i in lib if not i], P, args.tol_aniso,
+                                  args.max_dirs, progress)
 
-    hdr = ["quantity", "material", "finite_brdf_energy", "basis"] + [f"acc_P{k}" for k in range(P + 1)] + [
-        "min_order_95", "min_order_99"]
+    hdr = ["quantity", "material", "grazing_cutoff", "basis"] + [f"acc_P{k}" for k in range(P + 1)] + [
+        "min_order_95", "min_order_99", "error_estimate", "n_theta", "n_phi"]
 
-    def rows_of(names, res, bases):
+    def rows_of(names, res, meta, bases, quantities):
         rows = []
-        for q in ("cosine", "brdf"):
+        for q in quantities:
             for i, name in enumerate(names):
+                est, nt, nph = meta[q][i][:3]
+                c = meta[q][i][3] if len(meta[q][i]) > 3 else None
                 for bn in bases:
                     r = res[q][bn][i]
-                    rows.append([q, name, C.finite_energy(name), bn] + [float(x) for x in r]
-                                + [min_order(r, THRESH[0]), min_order(r, THRESH[1])])
+                    rows.append([q, name, "none" if c is None else c, bn] + [float(x) for x in r]
+                                + [min_order(r, THRESH[0]), min_order(r, THRESH[1]), est, nt, nph])
         return rows
 
-    C.write_csv(files[0], hdr, rows_of(iso_names, iso, C.ISO_BASES))
-    C.write_csv(files[1], hdr, rows_of(an_names, an, C.ANISO_BASES + C.ISO_BASES))
+    C.write_csv(files[0], hdr, rows_of(iso_names, iso, iso_meta, C.ISO_BASES, ("cosine", "brdf")))
+    C.write_csv(files[1], hdr, rows_of(an_names, an, {"cosine": an_meta}, C.ANISO_BASES, ("cosine",)))
+    C.write_csv(files[4], ["material", "grazing_cutoff", "acc_P0", "acc_P2", "acc_P4", "acc_P8", "error_estimate"],
+                cut_rows)
 
     def summary(res, bases, sel):
         rows = []
@@ -200,96 +284,161 @@ def main(argv=None):
     all_iso = np.ones(len(iso_names), bool)
     fin_iso = np.array([C.finite_energy(n) for n in iso_names])
     all_an = np.ones(len(an_names), bool)
-    best = {k: _best_counts(iso["cosine"], C.ISO_BASES[:4], k) for k in (2, 4, 8) if k <= P}
+    cmp_bases = [b for b in C.ISO_BASES if b != "hbasis_isotropic"]
+    best = {k: _best_counts(iso["cosine"], cmp_bases, k, tol=2 * args.tol) for k in (2, 4, 8) if k <= P}
+    est_iso = max(m[0] for q in ("cosine", "brdf") for m in iso_meta[q])
+    est_an = max(m[0] for m in an_meta)
     with open(files[2], "w") as fh:
         fh.write("# Compactness of the BRDF bases on analytic materials\n\n")
-        fh.write(f"Produced by `python examples/paper/compactness.py` ({time.strftime('%Y-%m-%d')}), "
-                 f"reduced isotropic rule {args.n_theta}x{args.n_theta}x{args.n_phi}, "
-                 f"anisotropic rule ({args.n_theta_4d}x{args.n_phi_4d})^2 per direction pair. "
+        fh.write(f"Produced by `python examples/paper/compactness.py` ({time.strftime('%Y-%m-%d')}). "
                  "Acc(P) = captured energy fraction (paper Eq. 17); `n/a` where the H-basis stops (order 2) "
                  "or a threshold is not reached by P = 10. Medians ignore materials that never reach the threshold.\n\n"
-                 "Two quantities are expanded: **cosine** = f cos(theta_i) cos(theta_o) (bounded and reciprocal for every "
-                 "model; main result) and **brdf** = f itself. The squared BRDF of the microfacet (GGX, Ward) and "
-                 "Oren-Nayar models is not integrable (grazing 1/cos growth), so their raw-BRDF Acc depends on the "
-                 "quadrature; raw-BRDF averages below use only the finite-energy materials (Lambertian, Blinn-Phong).\n\n")
+                 f"**Isotropic materials** use the reduced rule refined per material and quantity until Acc(P') of the "
+                 f"Helmholtz basis changes by less than {args.tol:g} for every P' <= {P} (largest error estimate "
+                 f"{est_iso:.2g}; per-material estimates and rule sizes in compactness_isotropic.csv). "
+                 f"**Anisotropic materials** use the 4-D rule refined up to {args.max_dirs} directions per hemisphere "
+                 f"(target {args.tol_aniso:g}; largest change of the last refinement {est_an:.2g}, see "
+                 "compactness_anisotropic.csv).\n\n"
+                 "Two quantities: **cosine** = f cos(theta_i) cos(theta_o) (bounded for every model) and **brdf** = f "
+                 "itself, the quantity of the paper's Eq. 17. For the GGX, Ward and Oren-Nayar models the integral of "
+                 f"f^2 diverges at grazing angles; their raw-BRDF Acc is that of f cut at cos(theta) >= {args.cutoff:g} "
+                 "for both directions (see compactness_cutoff.csv for the dependence on the cutoff). Lambertian and "
+                 "Blinn-Phong need no cutoff.\n\n")
         fh.write(f"## Cosine-weighted, {len(iso_names)} isotropic materials, isotropic bases\n\n")
         _table(fh, sh, summary(iso["cosine"], C.ISO_BASES, all_iso))
-        fh.write("\nNumber of isotropic materials (cosine-weighted) for which each basis has the highest Acc(P) "
-                 "(H-basis excluded, it stops at order 2; ties within 1e-9 count for every tied basis):\n\n")
-        _table(fh, ["P"] + C.ISO_BASES[:4], [[k] + [best[k][bn] for bn in C.ISO_BASES[:4]] for k in best])
-        fh.write(f"\n## Raw BRDF, {int(fin_iso.sum())} finite-energy isotropic materials\n\n")
+        fh.write(f"\nNumber of isotropic materials (cosine-weighted) for which each basis has the highest Acc(P) "
+                 f"(H-basis excluded, it stops at order 2; ties within {2 * args.tol:g} count for every tied basis):\n\n")
+        _table(fh, ["P"] + cmp_bases, [[k] + [best[k][bn] for bn in cmp_bases] for k in best])
+        fh.write(f"\n## Raw BRDF f (paper Eq. 17), {len(iso_names)} isotropic materials "
+                 f"(cutoff {args.cutoff:g} where f^2 is not integrable)\n\n")
+        _table(fh, sh, summary(iso["brdf"], C.ISO_BASES, all_iso))
+        fh.write(f"\n## Raw BRDF f, the {int(fin_iso.sum())} finite-energy materials only (no cutoff)\n\n")
         _table(fh, sh, summary(iso["brdf"], C.ISO_BASES, fin_iso))
-        fh.write(f"\n## Cosine-weighted, {len(an_names)} anisotropic Ward materials\n\n")
-        fh.write("Product bases (full 4-D projection) and isotropic bases (which capture the azimuthal "
-                 "average only; their Acc is bounded by its energy fraction):\n\n")
-        _table(fh, sh, summary(an["cosine"], C.ANISO_BASES + C.ISO_BASES, all_an))
-        fh.write(f"\nRuntime: {time.time() - t0:.0f} s.\n")
-    iso_mats, an_mats = iso_names, an_names
-    iso_c, an_c = iso["cosine"], an["cosine"]
+        fh.write(f"\n## Cosine-weighted, {len(an_names)} anisotropic Ward materials, product bases (4-D)\n\n")
+        _table(fh, sh, summary(an["cosine"], C.ANISO_BASES, all_an))
+        fh.write("\n## Raw-BRDF Acc of the Helmholtz basis against the grazing cutoff\n\n")
+        _table(fh, ["material", "cutoff", "Acc(0)", "Acc(2)", "Acc(4)", "Acc(8)", "error estimate"], cut_rows)
+        fh.write(f"\nRuntime: {time.time() - t0:.0f} s (isotropic part {t_iso:.0f} s).\n")
 
-    # figure
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
-    Ps = np.arange(P + 1)
-    for bn in C.ISO_BASES:
-        axes[0].plot(Ps, np.mean(iso_c[bn], 0), "o-", label=C.LABEL[bn])
-    axes[0].set_title(f"{len(iso_mats)} isotropic materials (f cos cos): mean Acc(P)")
-    for bn in C.ANISO_BASES:
-        axes[1].plot(Ps, np.mean(an_c[bn], 0), "o-", label=C.LABEL[bn] + " (4-D)")
-    axes[1].plot(Ps, np.mean(an_c["helmholtz_isotropic"], 0), "k--", label="Helmholtz isotropic (azimuthal avg.)")
-    axes[1].set_title(f"{len(an_mats)} anisotropic Ward (f cos cos): mean Acc(P)")
-    for ax in axes[:2]:
-        ax.set_xlabel("truncation order P")
-        ax.set_ylabel("Acc(P)")
-        ax.set_ylim(0, 1.01)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="lower right")
-    mo = [min_order(r, 0.95) for r in iso_c["helmholtz_isotropic"]]
-    mo99 = [min_order(r, 0.99) for r in iso_c["helmholtz_isotropic"]]
-    x = np.arange(len(iso_mats))
-    axes[2].bar(x - 0.2, [11 if math.isnan(v) else v for v in mo], 0.4, label="95 %")
-    axes[2].bar(x + 0.2, [11 if math.isnan(v) else v for v in mo99], 0.4, label="99 %")
-    axes[2].set_xticks(x)
-    axes[2].set_xticklabels(iso_mats, rotation=90, fontsize=6)
-    axes[2].set_ylabel("min order P (11 = not reached by 10)")
-    axes[2].set_title("Helmholtz isotropic (f cos cos): minimum order per material")
-    axes[2].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(files[3], dpi=120)
-    plt.close(fig)
+    _figure(plt, files[3], iso, an, iso_names, an_names, fin_iso, P, args.cutoff)
 
     if args.merl:
-        names, F, (wi, wo, w) = load_merl(args.merl, args.n_theta, args.n_phi, progress)
-        energy = (F * F * w[:, None]).sum(0)
-        res = {}
-        for bn in progress(C.ISO_BASES, desc="bases (MERL)"):
-            Pb = min(P, get_basis(bn).max_order)
-            a = C.project_values(bn, Pb, wi, wo, w, F)
-            res[bn] = acc_padded(C.accuracy_from_coeffs(bn, a, energy), P)
-        rows = []
-        for i, nm in enumerate(names):
-            for bn in C.ISO_BASES:
-                r = res[bn][i]
-                rows.append([nm, bn] + [float(v) for v in r] + [min_order(r, 0.95), min_order(r, 0.99)])
-        C.write_csv(files[4], hdr, rows)
-        fig, ax = plt.subplots(figsize=(6, 4.5))
-        for bn in C.ISO_BASES:
-            ax.plot(Ps, np.mean(res[bn], 0), "o-", label=C.LABEL[bn])
-        ax.set_xlabel("P")
-        ax.set_ylabel("mean Acc(P)")
-        ax.set_title(f"MERL ({len(names)} materials)")
-        ax.legend(fontsize=8)
-        ax.grid(alpha=0.3)
-        fig.tight_layout()
-        fig.savefig(files[5], dpi=120)
-        plt.close(fig)
+        run_merl(args, files, P, progress)
     print(f"wrote {len(files)} files in {time.time() - t0:.0f} s")
-    for bn in C.ISO_BASES:
-        print(f"  {bn:24s} mean Acc(2,4,8) = " + ", ".join(f"{np.mean(iso_c[bn][:, k]):.4f}" for k in (2, 4, 8) if k <= P))
-    for bn in C.ISO_BASES:
-        print(f"  {bn:24s} raw BRDF (finite-energy) mean Acc(2,4,8) = "
-              + ", ".join(f"{np.mean(iso['brdf'][bn][fin_iso, k]):.4f}" for k in (2, 4, 8) if k <= P))
+    for q in ("cosine", "brdf"):
+        for bn in C.ISO_BASES:
+            print(f"  {q:6s} {bn:28s} mean Acc(2,4,8) = "
+                  + ", ".join(f"{np.nanmean(iso[q][bn][:, k]):.4f}" for k in (2, 4, 8) if k <= P))
     for bn in C.ANISO_BASES:
-        print(f"  {bn:24s} (aniso) mean Acc(2,4,8) = " + ", ".join(f"{np.mean(an_c[bn][:, k]):.4f}" for k in (2, 4, 8) if k <= P))
+        print(f"  aniso  {bn:28s} mean Acc(2,4,8) = "
+              + ", ".join(f"{np.mean(an['cosine'][bn][:, k]):.4f}" for k in (2, 4, 8) if k <= P))
+
+
+def _plot_mean(ax, res, bases, P, title, aniso=False):
+    Ps = np.arange(P + 1)
+    for bn in bases:
+        lab = C.LABEL[bn] + (" (4-D)" if aniso else "")
+        ax.plot(Ps, np.mean(res[bn], 0), label=lab, **C.STYLE[bn])
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel("truncation order P")
+    ax.set_ylabel("mean Acc(P)")
+    ax.set_ylim(0, 1.01)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7.5, loc="lower right")
+
+
+def _figure(plt, path, iso, an, iso_names, an_names, fin_iso, P, cutoff):
+    fig, axes = plt.subplots(2, 2, figsize=(14, 10.5))
+    _plot_mean(axes[0, 0], iso["cosine"], C.ISO_BASES, P,
+               f"(a) {len(iso_names)} isotropic materials, f cos(theta_i) cos(theta_o)")
+    _plot_mean(axes[0, 1], iso["brdf"], C.ISO_BASES, P,
+               f"(b) same materials, raw BRDF f (cutoff cos >= {cutoff:g} where f^2 diverges)")
+    _plot_mean(axes[1, 0], an["cosine"], C.ANISO_BASES, P,
+               f"(c) {len(an_names)} anisotropic Ward, f cos cos, product bases", aniso=True)
+    ax = axes[1, 1]
+    y = np.arange(len(iso_names))
+    for off, q, col in ((-0.2, "cosine", "tab:gray"), (0.2, "brdf", "tab:purple")):
+        A = iso[q]["helmholtz_isotropic"]
+        mo = [min_order(r, 0.95) for r in A]
+        ax.barh(y + off, [P + 1 if math.isnan(v) else v for v in mo], 0.4, color=col,
+                label=f"95 %, {'f cos cos' if q == 'cosine' else 'raw f'}")
+    ax.set_yticks(y)
+    ax.set_yticklabels(iso_names, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel(f"minimum order P for Acc >= 95 % ({P + 1} = not reached by {P})")
+    ax.set_title("(d) Helmholtz isotropic: minimum order per material", fontsize=10)
+    ax.grid(alpha=0.3, axis="x")
+    ax.legend(fontsize=8, loc="upper right")  # the top rows (diffuse materials) have short bars
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_merl(args, files, P, progress):
+    """Paper Fig. 6 on a folder of MERL files: Acc(P) per isotropic basis, minimum orders, figure."""
+    import warnings
+
+    import matplotlib.pyplot as plt
+
+    warnings.filterwarnings("ignore", "Mean of empty slice", RuntimeWarning)  # H-basis columns beyond order 2
+
+    paths = sorted(args.merl.glob("*.binary"))
+    if not paths:
+        raise SystemExit(f"--merl: no .binary files in {args.merl}")
+    res = {bn: [] for bn in C.ISO_BASES}
+    meta = []
+    for path in progress(paths, desc="MERL files"):
+        acc, info = converged_iso(merl_brdf(path), P, args.merl_tol, None)
+        for bn in C.ISO_BASES:
+            res[bn].append(acc[bn])
+        meta.append((info["error_estimate"], info["n_theta"], info["n_phi"]))
+    names = [p.stem for p in paths]
+    res = {k: np.stack(v) for k, v in res.items()}
+    hdr = ["material", "basis"] + [f"acc_P{k}" for k in range(P + 1)] + [
+        "min_order_95", "min_order_99", "error_estimate", "n_theta", "n_phi"]
+    rows = []
+    for i, nm in enumerate(names):
+        for bn in C.ISO_BASES:
+            r = res[bn][i]
+            rows.append([nm, bn] + [float(v) for v in r] + [min_order(r, 0.95), min_order(r, 0.99)] + list(meta[i]))
+    C.write_csv(files[5], hdr, rows)
+    with open(files[7], "w") as fh:
+        where = args.merl.resolve()
+        where = where.relative_to(C.ROOT) if C.ROOT in where.parents else where
+        fh.write(f"# Paper Fig. 6 on {len(names)} MERL files in `{where}`\n\n"
+                 "Raw BRDF f (mean of the colour channels, nearest-bin lookup), reduced rule refined until Acc(P') of "
+                 f"the Helmholtz basis changes by less than {args.merl_tol:g}. Minimum order of the Helmholtz basis:\n\n")
+        _table(fh, ["material", "Acc(2)", "Acc(4)", "Acc(8)", "min P (95%)", "min P (99%)", "error estimate"],
+               [[nm, res["helmholtz_isotropic"][i][2], res["helmholtz_isotropic"][i][4], res["helmholtz_isotropic"][i][8],
+                 min_order(res["helmholtz_isotropic"][i], 0.95), min_order(res["helmholtz_isotropic"][i], 0.99),
+                 meta[i][0]] for i, nm in enumerate(names)])
+        fh.write("\nMean Acc(P) per basis:\n\n")
+        _table(fh, ["basis", "Acc(2)", "Acc(4)", "Acc(8)"],
+               [[bn] + [float(np.nanmean(res[bn][:, k])) for k in (2, 4, 8)] for bn in C.ISO_BASES])
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
+    Ps = np.arange(P + 1)
+    for bn in C.ISO_BASES:
+        axes[0].plot(Ps, np.nanmean(res[bn], 0), label=C.LABEL[bn], **C.STYLE[bn])
+    axes[0].set_xlabel("truncation order P")
+    axes[0].set_ylabel("mean Acc(P) (raw BRDF)")
+    axes[0].set_title(f"MERL files in {args.merl.resolve().name}/ ({len(names)} materials)", fontsize=10)
+    axes[0].legend(fontsize=8, loc="lower right")
+    axes[0].set_ylim(0, 1.01)
+    axes[0].grid(alpha=0.3)
+    y = np.arange(len(names))
+    for off, thr, col in ((-0.2, 0.95, "tab:gray"), (0.2, 0.99, "tab:purple")):
+        mo = [min_order(r, thr) for r in res["helmholtz_isotropic"]]
+        axes[1].barh(y + off, [P + 1 if math.isnan(v) else v for v in mo], 0.4, color=col, label=f"{thr:.0%}")
+    axes[1].set_yticks(y)
+    axes[1].set_yticklabels(names, fontsize=8)
+    axes[1].invert_yaxis()
+    axes[1].set_xlabel(f"minimum order P, Helmholtz isotropic ({P + 1} = not reached)")
+    axes[1].legend(fontsize=8)
+    axes[1].grid(alpha=0.3, axis="x")
+    fig.tight_layout()
+    fig.savefig(files[6], dpi=110)
+    plt.close(fig)
+    print(f"MERL: wrote {files[5]}, {files[6]}, {files[7]}")
 
 
 def _med(v):

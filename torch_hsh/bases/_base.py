@@ -45,6 +45,18 @@ class Basis(ABC):
     def evaluate(self, wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
         """``(..., 3), (..., 3) -> (..., K)`` basis values in the local frame."""
 
+    def azimuthal_degree(self, order: int) -> Optional[int]:
+        """Largest azimuthal frequency of the functions up to ``order``, or ``None`` if unknown.
+
+        A basis that returns ``D`` promises: at fixed polar angles every function up to
+        ``order`` is a trigonometric polynomial of degree ``<= D`` in ``phi_i`` and in
+        ``phi_o`` (for an isotropic basis: in ``phi_o - phi_i``). The convergence-controlled
+        projection then low-passes the BRDF in azimuth and evaluates the basis on
+        ``2D + 2`` azimuths only (see :mod:`torch_hsh._integrate`). ``None`` (the
+        default for user bases) disables that shortcut; results are the same.
+        """
+        return None
+
     def __call__(self, wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
         return self.evaluate(wi, wo, order)
 

@@ -37,7 +37,8 @@ import torch
 
 from ..basis import _const, _hsh_flat, _polar_consts, _polar_table, _safe_s
 from ._base import Basis, register_basis
-from .westin import MAX_PRODUCT_ORDER, broadcast_pair, complex_powers, pair_table, unit_dirs
+from ._isotropic import azimuth_table, gather_rows, pair_frame
+from .westin import MAX_PRODUCT_ORDER, broadcast_pair, pair_table
 
 __all__ = ["GautronHSH", "GautronHSHIsotropic"]
 
@@ -78,6 +79,9 @@ class GautronHSH(Basis):
             -1, _const(("gau_k", order), k, dev, None)
         )
         return out.reshape(*lead, out.shape[-1])
+
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
 
     def num_functions(self, order):
         return (self.check_order(order) + 1) ** 4
@@ -133,27 +137,20 @@ class GautronHSHIsotropic(Basis):
     max_order = 40
 
     def evaluate(self, wi, wo, order):
-        lead, wi, wo = broadcast_pair(wi, wo)
+        lead, zi, zo, cr, ci, valid = pair_frame(wi, wo)
         order = self.check_order(order)
-        xi, yi, zi, oki = unit_dirs(wi)
-        xo, yo, zo, oko = unit_dirs(wo)
-        valid = oki & oko & (zi >= 0) & (zo >= 0)
         zi_c, zo_c = zi.clamp(min=0.0), zo.clamp(min=0.0)
-        Ti = _polar_table(zi_c, order)
-        To = _polar_table(zo_c, order)
-        sio = _safe_s(zi_c) * _safe_s(zo_c)
-        # (s_i s_o)^q c^q, c = (x_i - i y_i)(x_o + i y_o): magnitude (sin_i sin_o)^q, phase q dphi
-        RE, IM = complex_powers(sio * (xi * xo + yi * yo), sio * (xi * yo - yi * xo), order)
-        AZ = torch.cat([RE, IM], dim=-1) * valid.to(zi.dtype).unsqueeze(-1)
+        Ti, To = _polar_table(zi_c, order), _polar_table(zo_c, order)
+        # (s_i s_o)^q c^q: magnitude (sin_i sin_o)^q, phase q dphi (the polar tables carry 1/(s^q))
+        AZ = azimuth_table(cr, ci, valid, order, True, _safe_s(zi_c) * _safe_s(zo_c))
         _, _, _, col = _polar_consts(order)
         rows = _gautron_iso_rows(order)
-        dev, dt = Ti.device, Ti.dtype
-        ia = _const(("gi_a", order), [col[(p, q)] for _, p, r, q, kd in rows], dev, None)
-        ib = _const(("gi_b", order), [col[(r, q)] for _, p, r, q, kd in rows], dev, None)
-        az = _const(("gi_z", order), [q if kd == 0 else order + q for _, p, r, q, kd in rows], dev, None)
-        c = _const(("gi_c", order), [1.0 if q == 0 else math.sqrt(2.0) for _, p, r, q, kd in rows], dev, dt)
-        out = Ti.index_select(-1, ia) * To.index_select(-1, ib) * AZ.index_select(-1, az) * c
-        return out.reshape(*lead, out.shape[-1])
+        return gather_rows(Ti, To, AZ, [col[(p, q)] for _, p, r, q, kd in rows], [col[(r, q)] for _, p, r, q, kd in rows],
+                           [q if kd == 0 else order + q for _, p, r, q, kd in rows],
+                           [1.0 if q == 0 else math.sqrt(2.0) for _, p, r, q, kd in rows], ("gi", order), False, lead)
+
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
 
     def num_functions(self, order):
         return len(_gautron_iso_rows(self.check_order(order)))

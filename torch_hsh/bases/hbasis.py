@@ -134,6 +134,9 @@ class HBasis(Basis):
         out = product_basis(_h_flat(wi, order), _h_flat(wo, order), _LABELS[: _COUNTS[order]], order, True, "hb")
         return out.reshape(*lead, out.shape[-1])
 
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
+
     def num_functions(self, order):
         k = _COUNTS[self.check_order(order)]
         return k * (k + 1) // 2
@@ -183,6 +186,9 @@ class HBasisIsotropic(HBasis):
             cols.append(math.sqrt(2.0) * (15.0 / (16.0 * math.pi)) * (a * a - b * b))
         out = torch.stack(cols, dim=-1) * mask.unsqueeze(-1)
         return out.reshape(*lead, out.shape[-1])
+
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
 
     def num_functions(self, order):
         return _ISO_COUNTS[self.check_order(order)]

@@ -25,6 +25,9 @@ class HelmholtzIsotropic(Basis):
     def evaluate(self, wi, wo, order):
         return _b.helmholtz_isotropic(wi, wo, self.check_order(order))
 
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
+
     def num_functions(self, order):
         return _b.num_isotropic(self.check_order(order))
 
@@ -49,6 +52,9 @@ class HelmholtzAnisotropic(Basis):
 
     def evaluate(self, wi, wo, order):
         return _b.helmholtz_anisotropic(wi, wo, self.check_order(order))
+
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
 
     def num_functions(self, order):
         return _b.num_anisotropic(self.check_order(order))

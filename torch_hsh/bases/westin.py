@@ -265,6 +265,9 @@ class WestinSH(Basis):
         out = product_basis(Fi, Fo, _sh_gather(order)[3], order, True, "westin")
         return out.reshape(*lead, out.shape[-1])
 
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
+
     def num_functions(self, order):
         k = (self.check_order(order) + 1) ** 2
         return k * (k + 1) // 2
@@ -278,24 +281,6 @@ class WestinSH(Basis):
 def iso_table(order: int):
     """Rows ``(p, r, q)``, ``p >= r >= q >= 0``, p-major (the order of :func:`torch_hsh.isotropic_indices`)."""
     return tuple((p, r, q) for p in range(order + 1) for r in range(p + 1) for q in range(r + 1))
-
-
-def isotropic_from_polar(Ti, To, col, RE, order: int, key: str):
-    """Isotropic symmetrised basis from polar tables.
-
-    ``Ti, To``: ``(N, L)`` polar tables with column map ``col[(n, q)]`` that already
-    contain the ``q``-dependent radial factor except the azimuthal part;
-    ``RE``: ``(N, P+1)`` table of ``(sin_i sin_o)^q cos(q dphi)`` times any extra per-q factor.
-    """
-    rows = iso_table(order)
-    dev, dt = Ti.device, Ti.dtype
-    ia = _const((key + "_ia", order), [col[(p, q)] for p, r, q in rows], dev, None)
-    ib = _const((key + "_ib", order), [col[(r, q)] for p, r, q in rows], dev, None)
-    qq = _const((key + "_q", order), [q for p, r, q in rows], dev, None)
-    c = [(0.5 if p == r else 1.0 / math.sqrt(2.0)) * (1.0 if q == 0 else math.sqrt(2.0)) for p, r, q in rows]
-    out = Ti.index_select(-1, ia) * To.index_select(-1, ib)
-    out = out.addcmul(Ti.index_select(-1, ib), To.index_select(-1, ia))
-    return out * RE.index_select(-1, qq) * _const((key + "_c", order), c, dev, dt)
 
 
 class WestinSHIsotropic(Basis):
@@ -318,18 +303,20 @@ class WestinSHIsotropic(Basis):
     max_order = 40
 
     def evaluate(self, wi, wo, order):
-        lead, wi, wo = broadcast_pair(wi, wo)
+        from ._isotropic import azimuth_table, gather_rows, pair_frame
+
+        lead, zi, zo, cr, ci, valid = pair_frame(wi, wo, hemisphere=False)  # full-sphere basis: no horizon mask
         order = self.check_order(order)
-        xi, yi, zi, oki = unit_dirs(wi)
-        xo, yo, zo, oko = unit_dirs(wo)
         col, _ = _sh_consts(order)
-        Ti = _sh_polar(zi, order)
-        To = _sh_polar(zo, order)
-        # c = (x_i - i y_i)(x_o + i y_o): |c| = sin_i sin_o, arg c = phi_o - phi_i
-        RE, _ = complex_powers(xi * xo + yi * yo, xi * yo - yi * xo, order)
-        RE = RE * (oki & oko).to(zi.dtype).unsqueeze(-1)
-        out = isotropic_from_polar(Ti, To, col, RE, order, "westin_iso")
-        return out.reshape(*lead, out.shape[-1])
+        Ti, To = _sh_polar(zi, order), _sh_polar(zo, order)
+        RE = azimuth_table(cr, ci, valid, order, False)  # (sin_i sin_o)^q cos(q dphi)
+        rows = iso_table(order)
+        c = [(0.5 if p == r else 1.0 / math.sqrt(2.0)) * (1.0 if q == 0 else math.sqrt(2.0)) for p, r, q in rows]
+        return gather_rows(Ti, To, RE, [col[(p, q)] for p, r, q in rows], [col[(r, q)] for p, r, q in rows],
+                           [q for p, r, q in rows], c, ("westin_iso", order), True, lead)
+
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
 
     def num_functions(self, order):
         P = self.check_order(order)

@@ -43,9 +43,10 @@ import torch
 from .._checks import check_order
 from ..basis import _const
 from ._base import Basis, register_basis
-from .westin import broadcast_pair, complex_powers, unit_dirs
+from ._isotropic import azimuth_table, gather_rows, pair_frame
 
-__all__ = ["KoenderinkZernike", "zernike_indices", "zernike_radial", "zernike_mirror_coefficients"]
+__all__ = ["KoenderinkZernike", "KoenderinkZernikeProduct", "zernike_indices", "zernike_product_indices",
+           "zernike_radial", "zernike_mirror_coefficients"]
 
 #: Largest supported n (the radial sums cancel badly in float64 beyond about 30).
 MAX_ZERNIKE_ORDER = 24
@@ -162,6 +163,16 @@ def zernike_mirror_coefficients(order: int, dtype=torch.float64) -> torch.Tensor
     return torch.tensor(vals, dtype=dtype)
 
 
+def _tables(zi, zo, cr, ci, valid, order: int, sines: bool):
+    """Radial tables R_n^l/rho^l at u = 1 - z and the azimuthal table rho_i^l rho_o^l {cos, sin}(l dphi)."""
+    zi_c, zo_c = zi.clamp(0.0, 1.0), zo.clamp(0.0, 1.0)
+    Ti, col = _radial_table(1.0 - zi_c, order)
+    To, _ = _radial_table(1.0 - zo_c, order)
+    # rho_i^l rho_o^l cos(l dphi) = Re(c'^l), c' = c / sqrt((1+z_i)(1+z_o))
+    A = azimuth_table(cr, ci, valid, order, sines, torch.rsqrt((1.0 + zi_c) * (1.0 + zo_c)))
+    return Ti, To, A, col
+
+
 class KoenderinkZernike(Basis):
     """Isotropic reciprocal Zernike basis, ``koenderink_zernike`` (order label = n).
 
@@ -183,28 +194,15 @@ class KoenderinkZernike(Basis):
     max_order = MAX_ZERNIKE_ORDER
 
     def evaluate(self, wi, wo, order):
-        lead, wi, wo = broadcast_pair(wi, wo)
+        lead, zi, zo, cr, ci, valid = pair_frame(wi, wo)
         order = self.check_order(order)
-        xi, yi, zi, oki = unit_dirs(wi)
-        xo, yo, zo, oko = unit_dirs(wo)
-        valid = oki & oko & (zi >= 0) & (zo >= 0)
-        zi_c, zo_c = zi.clamp(0.0, 1.0), zo.clamp(0.0, 1.0)
-        Ti, col = _radial_table(1.0 - zi_c, order)
-        To, _ = _radial_table(1.0 - zo_c, order)
-        # rho_i^l rho_o^l cos(l dphi) = Re(c'^l), c' = c / sqrt((1+z_i)(1+z_o))
-        k = torch.rsqrt((1.0 + zi_c) * (1.0 + zo_c))
-        RE, _ = complex_powers(k * (xi * xo + yi * yo), k * (xi * yo - yi * xo), order)
-        RE = RE * valid.to(zi.dtype).unsqueeze(-1)
+        Ti, To, A, col = _tables(zi, zo, cr, ci, valid, order, False)
         rows = _rows(order)
-        dev, dt = Ti.device, Ti.dtype
-        ia = _const(("zk_a", order), [col[(n, l)] for n, m, l in rows], dev, None)
-        ib = _const(("zk_b", order), [col[(m, l)] for n, m, l in rows], dev, None)
-        il = _const(("zk_l", order), [l for n, m, l in rows], dev, None)
-        c = _const(("zk_c", order), [_norm(n, m, l) for n, m, l in rows], dev, dt)
-        out = Ti.index_select(-1, ia) * To.index_select(-1, ib)
-        out = out.addcmul(Ti.index_select(-1, ib), To.index_select(-1, ia))
-        out = out * RE.index_select(-1, il) * c
-        return out.reshape(*lead, out.shape[-1])
+        return gather_rows(Ti, To, A, [col[(n, l)] for n, m, l in rows], [col[(m, l)] for n, m, l in rows],
+                           [l for n, m, l in rows], [_norm(n, m, l) for n, m, l in rows], ("zk", order), True, lead)
+
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
 
     def num_functions(self, order):
         return len(_rows(self.check_order(order)))
@@ -213,4 +211,81 @@ class KoenderinkZernike(Basis):
         return torch.tensor([n for n, m, l in _rows(self.check_order(order))], dtype=torch.long)
 
 
+@lru_cache(maxsize=None)
+def _product_rows(order: int):
+    """Rows ``(label, n, m, l, kind)`` of the unsymmetrised basis, kind 0 = cos, 1 = sin; nested by label."""
+    rows = []
+    for n in range(order + 1):
+        for m in range(order + 1):
+            for l in range(min(n, m) + 1):
+                if (n - l) % 2 or (m - l) % 2:
+                    continue
+                rows.append((max(n, m), n, m, l, 0))
+                if l >= 1:
+                    rows.append((max(n, m), n, m, l, 1))
+    rows.sort(key=lambda t: (t[0], t[1], t[2], t[4], t[3]))
+    return tuple(rows)
+
+
+def zernike_product_indices(order: int) -> torch.Tensor:
+    """LongTensor ``(K, 4)`` of rows ``(n, m, l, kind)`` of ``koenderink_zernike_product`` (kind 0 = cos, 1 = sin).
+
+    Example:
+        >>> zernike_product_indices(1).tolist()
+        [[0, 0, 0, 0], [1, 1, 1, 0], [1, 1, 1, 1]]
+    """
+    order = check_order(order, max_order=MAX_ZERNIKE_ORDER)
+    return torch.tensor([r[1:] for r in _product_rows(order)], dtype=torch.long).reshape(-1, 4)
+
+
+class KoenderinkZernikeProduct(Basis):
+    r"""Unsymmetrised isotropic Zernike product basis, ``koenderink_zernike_product`` (**not** reciprocal).
+
+    .. math::
+        Z_{nm}^{l,c} = \frac{\sqrt{(n+1)(m+1)}}{2\pi}\,c_l\,R_n^l(\rho_i)R_m^l(\rho_o)\cos(l\Delta\phi),\qquad
+        Z_{nm}^{l,s} = \frac{\sqrt{(n+1)(m+1)}}{2\pi}\sqrt2\,R_n^l(\rho_i)R_m^l(\rho_o)\sin(l\Delta\phi)
+
+    for all **ordered** ``(n, m)`` with ``l <= min(n, m)``, ``n - l`` and ``m - l`` even
+    (:math:`c_0 = 1`, :math:`c_l = \sqrt2`; sine terms for ``l >= 1``): the isotropic subspace
+    of products of a Zernike function of :math:`\omega_i` and one of :math:`\omega_o`
+    (the relation of ``koenderink_zernike`` to this basis is that of ``helmholtz_isotropic``
+    to ``gautron_hsh_isotropic``). Orthonormal over :math:`\Omega_i\times\Omega_o`; label
+    ``max(n, m)``; columns sorted by label, then ``n, m``, cosine before sine terms.
+
+    Example:
+        >>> from torch_hsh.bases import get_basis
+        >>> [get_basis("koenderink_zernike_product").num_functions(p) for p in range(4)]
+        [1, 3, 8, 16]
+    """
+
+    name = "koenderink_zernike_product"
+    isotropic = True
+    reciprocal = False
+    domain = "hemisphere"
+    max_order = MAX_ZERNIKE_ORDER
+
+    def evaluate(self, wi, wo, order):
+        lead, zi, zo, cr, ci, valid = pair_frame(wi, wo)
+        order = self.check_order(order)
+        Ti, To, A, col = _tables(zi, zo, cr, ci, valid, order, True)
+        rows = _product_rows(order)
+        coef = [math.sqrt((n + 1) * (m + 1)) / (2 * math.pi) * (1.0 if l == 0 else math.sqrt(2.0))
+                for _, n, m, l, kd in rows]
+        return gather_rows(Ti, To, A, [col[(n, l)] for _, n, m, l, kd in rows], [col[(m, l)] for _, n, m, l, kd in rows],
+                           [l if kd == 0 else order + l for _, n, m, l, kd in rows], coef, ("zkp", order), False, lead)
+
+    def azimuthal_degree(self, order):
+        return self.check_order(order)
+
+    def num_functions(self, order):
+        return len(_product_rows(self.check_order(order)))
+
+    def function_orders(self, order):
+        return torch.tensor([r[0] for r in _product_rows(self.check_order(order))], dtype=torch.long)
+
+
 register_basis(KoenderinkZernike())
+_helm = KoenderinkZernike()
+_helm.name = "koenderink_helmholtz"
+register_basis(_helm)  # the reciprocal (Helmholtz) basis of Koenderink & van Doorn (1998), same functions
+register_basis(KoenderinkZernikeProduct())
