@@ -152,28 +152,6 @@ def _sh_rotation_matrix(R: np.ndarray, order: int) -> torch.Tensor:
 
 
 @lru_cache(maxsize=None)
-def _z_rotation_parts(order: int):
-    """Z(theta) = sum_a trig_a(theta) Z_a, trig = [1, cos m theta (m=1..N), sin m theta (m=1..N)].
-
-    Returns the stacked ``(2N+1, K, K)`` float64 matrices. With this module's SH
-    (``Phi_{-m} = (-1)^m sqrt2 sin``), f(R_z(theta) w) has coefficients
-    ``c'_m = c_m cos m t + (-1)^m c_{-m} sin m t``, ``c'_{-m} = c_{-m} cos m t - (-1)^m c_m sin m t``.
-    """
-    N = order
-    K = (N + 1) ** 2
-    Z = np.zeros((2 * N + 1, K, K))
-    for l in range(N + 1):
-        Z[0, l * l + l, l * l + l] = 1.0
-        for m in range(1, l + 1):
-            kp, kn = l * l + l + m, l * l + l - m
-            sg = (-1.0) ** m
-            Z[m, kp, kp] = Z[m, kn, kn] = 1.0
-            Z[N + m, kp, kn] = sg
-            Z[N + m, kn, kp] = -sg
-    return torch.from_numpy(Z)
-
-
-@lru_cache(maxsize=None)
 def _z_rotation_gather(order: int):
     """Per flat index k: trig column of cos(|m| t), partner index k', signed sin column for ``Z(t)``.
 
@@ -246,11 +224,15 @@ def _render_consts_host(N: int, P: int):
     Jm = _sh_rotation_matrix(_rot_x(-math.pi / 2), N)
     Jp = _sh_rotation_matrix(_rot_x(math.pi / 2), N)
     Spi = _sh_rotation_matrix(_rot_z(math.pi), N)
-    Za = _z_rotation_parts(N)  # (2N+1, K, K)
-    JZ = torch.einsum("kj,ajl->akl", Jm, Za)  # (2N+1, K, K): J_- Z_a
+    cos_col, sin_col, partner, sign = _z_rotation_gather(N)
+    Kn = len(cos_col)
+    # Z_a L = Ocos[a] * L + Osin[a] * L[partner] (one-hot rows, signs folded in)
+    Ocos = torch.zeros(2 * N + 1, Kn, dtype=torch.float64)
+    Osin = torch.zeros(2 * N + 1, Kn, dtype=torch.float64)
+    Ocos[cos_col, range(Kn)] = 1.0
+    Osin[sin_col, range(Kn)] = torch.tensor(sign, dtype=torch.float64)
     T = _shading_table(N, P)  # (K, Lp)
     W = (Spi @ Jp).T @ T  # (K, Lp): E = W^T Y with Y = Z_beta X
-    cos_col, sin_col, partner, sign = _z_rotation_gather(N)
     # (Z_b X)^T W = sum_k X_k [cos_k W_k + sum_{k': partner(k') = k} sign_k' sin_k' W_k']
     inv = [0] * len(partner)
     for k, kk in enumerate(partner):
@@ -291,7 +273,7 @@ def _render_consts_host(N: int, P: int):
         Bsel[cos_col[k], k] += W[k]
         if sign[inv[k]] != 0.0:
             Bsel[sin2[k], k] += W2[k]
-    return dict(JZ=JZ, W=W, Bsel=Bsel, j1=j1, j2=j2z, S1=S1, S2=S2, A1=A1,
+    return dict(Jm=Jm, Ocos=Ocos, Osin=Osin, partner=partner, W=W, Bsel=Bsel, j1=j1, j2=j2z, S1=S1, S2=S2, A1=A1,
                 th_cols=th_cols, th_scale=th_scale)
 
 
@@ -734,7 +716,9 @@ def render_envmap(
     S = broadcast_shapes([("normals", normals.shape[:-1]), ("coefficients", coefficients.shape[:-2])])
     dt, dev = normals.dtype, normals.device
     c = _render_consts(N, P, dt, dev)
-    M = torch.einsum("akj,cj->ack", c["JZ"], L.expand(C, -1))  # (2N+1, C, Kl): J_- Z_a L
+    Lc = L.expand(C, -1)
+    ZL = c["Ocos"].unsqueeze(1) * Lc + c["Osin"].unsqueeze(1) * Lc.index_select(1, c["partner"])  # Z_a L
+    M = ZL @ c["Jm"].t()  # (2N+1, C, Kl): J_- Z_a L
     Q = torch.einsum("ack,bkj->abcj", M, c["Bsel"]).reshape(2 * N + 1, -1)  # (2N+1, (2N+1) C Lp)
     n = torch.nn.functional.normalize(normals.expand(*S, 3).reshape(-1, 3), dim=-1)
     if coefficients.shape[:-2] == S:
