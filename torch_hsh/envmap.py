@@ -77,14 +77,14 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
-from typing import Callable, Optional, Sequence, Tuple, Union
+from typing import Callable, Optional, Tuple, Union
 
 import numpy as np
 import torch
 
 from ._checks import broadcast_shapes, check_dirs, check_order, check_same, check_tensor
 from .basis import _hsh_flat_t, _iso_list, hsh
-from .bases.westin import _sh_consts, _sh_gather, _sh_polar, complex_powers, real_sh
+from .bases.westin import _sh_gather, _sh_polar, complex_powers, real_sh
 from .render import brdf_cosine, order_from_num_coefficients
 
 __all__ = [
@@ -815,7 +815,7 @@ def render_envmap_reference(
             brdf = brdf.expand(*S, *brdf.shape[-2:])
         width = brdf.shape[-1]
     elif callable(brdf):
-        width = 4
+        width = 64  # unknown memory per evaluation (a basis expansion holds K values): be conservative
     else:
         raise TypeError(f"`brdf` must be coefficient maps or a callable f(wi, wo), got {type(brdf).__name__}")
     data = env.data
