@@ -8,6 +8,9 @@ materials (MERL files are not available here):
 * "beige fabric": Oren-Nayar, albedo (0.75, 0.62, 0.48), sigma = 0.35 rad (rough diffuse);
 * "blue metallic paint": GGX, albedo (0.05, 0.10, 0.35), specular 1, roughness 0.35, f0 0.04 (glossy).
 
+The maps are turned by ``--turn`` = pi about the up axis. As stored, the centre column, which holds
+the sun of venice_sunset, lies behind the sphere (-z). Turned, the sun lights the visible side.
+
 Pairings as in the paper: (a) high-frequency map + diffuse material at illumination order
 N = 12, (b) low-frequency map + glossy material at N = 6, plus the two other pairings at the
 same orders (c, d).
@@ -75,7 +78,7 @@ PAIRINGS = [("a", "high", "diffuse", 12), ("b", "low", "glossy", 6), ("c", "high
 
 
 def sphere(size: int):
-    u = (torch.arange(size, dtype=DT) + 0.5) / size * 2 - 1
+    u = ((torch.arange(size, dtype=DT) + 0.5) / size * 2 - 1) * 1.08  # a small margin around the disc
     y, x = torch.meshgrid(-u, u, indexing="ij")
     r2 = x * x + y * y
     mask = r2 < 1
@@ -113,6 +116,7 @@ def main(argv=None):
     p.add_argument("--gt-height", type=int, default=64, help="rows of the ground-truth map (power-preserving downsample)")
     p.add_argument("--bl-height", type=int, default=32, help="rows of the sampled band-limited map")
     p.add_argument("--pairings", default="abcd", help="subset of a, b, c, d")
+    p.add_argument("--turn", type=float, default=3.141592653589793, help="rotation of the maps about +y (radians)")
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -125,7 +129,9 @@ def main(argv=None):
     t_start = time.time()
     P = args.order
     n, mask = sphere(args.size)
-    envs = {k: EnvironmentMap.from_exr(args.envmaps / v, dtype=DT) for k, v in MAPS.items()}
+    # turned by --turn about +y: the stored maps have the sun / brightest sky at the centre column (-z),
+    # i.e. behind the sphere; turned by pi it lights the visible hemisphere, as in the paper's figure
+    envs = {k: EnvironmentMap.from_exr(args.envmaps / v, dtype=DT, rotation=args.turn) for k, v in MAPS.items()}
     gt_env = {k: e.downsample(e.height // args.gt_height) for k, e in envs.items()}
     mats = materials()
     fits = {}
@@ -199,12 +205,13 @@ def main(argv=None):
     thumb = env.downsample(8).data.numpy()
     s_map = float(np.percentile(thumb, 99.5))
     axes[0, 0].imshow(tonemap(thumb, s_map))
-    axes[0, 0].set_xlabel("venice_sunset (64x128 thumbnail)", fontsize=8)
+    axes[0, 0].set_xlabel("venice_sunset (64x128 thumbnail, as stored)", fontsize=8)
     axes[1, 0].imshow(tonemap(to_image(gt, mask), scale))
     axes[1, 0].set_xlabel("glossy sphere, ground truth", fontsize=8)
     for c, N in enumerate(orders):
         Lc = env.sh_coefficients(N)
-        axes[0, c + 1].imshow(tonemap(EnvironmentMap.from_sh(Lc, 64, 128).data.numpy(), s_map))
+        Lu = env.rotated(-env.rotation).sh_coefficients(N)  # show the truncation in the stored layout
+        axes[0, c + 1].imshow(tonemap(EnvironmentMap.from_sh(Lu, 64, 128).data.numpy(), s_map))
         axes[0, c + 1].set_xlabel(f"SH truncation N = {N}", fontsize=8)
         img = render_envmap(n, fits["glossy", "helmholtz_isotropic"], Lc)
         err = float((img.clamp(min=0) / scale - gt / scale).abs().mean())
