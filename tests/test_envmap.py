@@ -352,3 +352,13 @@ def test_bad_inputs_raise():
         sh_coefficients(torch.ones(4, 8, 3), 2)
     with pytest.raises(ValueError, match="supersample"):
         render_envmap_reference(n, a.unsqueeze(0), env, supersample=0)
+
+
+def test_from_exr_reads_the_layout(tmp_path):
+    from torch_hsh.io import write_exr
+
+    rgb = np.random.default_rng(0).random((4, 8, 3)).astype(np.float32)
+    path = write_exr(tmp_path / "env.exr", {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2]})
+    env = EnvironmentMap.from_exr(path, dtype=DT, rotation=0.5)
+    assert env.shape == (4, 8, 3) and env.rotation == 0.5
+    np.testing.assert_allclose(env.data.numpy(), rgb, rtol=0, atol=0)
