@@ -362,3 +362,28 @@ def test_from_exr_reads_the_layout(tmp_path):
     env = EnvironmentMap.from_exr(path, dtype=DT, rotation=0.5)
     assert env.shape == (4, 8, 3) and env.rotation == 0.5
     np.testing.assert_allclose(env.data.numpy(), rgb, rtol=0, atol=0)
+
+
+def test_environment_lighting_module_learns_the_light():
+    from torch_hsh.envmap import EnvironmentLighting
+
+    env = _sky(8, 16)
+    n = _normals(64, seed=12)
+    a = _coefficients(1, 3, 1)[0]
+    fixed = EnvironmentLighting(env, light_order=3, learnable=False)
+    assert "coefficients" in dict(fixed.named_buffers())
+    torch.testing.assert_close(fixed(n, a), render_envmap(n, a, env, light_order=3), atol=1e-13, rtol=0)
+    target = fixed(n, a)
+    light = EnvironmentLighting(torch.zeros(3, 16, dtype=DT))
+    opt = torch.optim.Adam(light.parameters(), lr=0.05)
+    losses = []
+    for _ in range(20):
+        opt.zero_grad()
+        loss = ((light(n, a) - target) ** 2).mean()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.2 * losses[0]
+    assert light.to_map(4, 8).shape == (4, 8, 3)
+    with pytest.raises(ValueError, match="light_order"):
+        EnvironmentLighting(env)

@@ -40,4 +40,4 @@ from . import render  # noqa: E402,F401  (differentiable photometric-stereo imag
 from . import ps  # noqa: E402,F401  (photometric-stereo solvers: ps.solve_hsh, ps.robust_lambertian, ...)
 from .ps import solve_hsh  # noqa: E402,F401
 from . import envmap  # noqa: E402,F401  (environment lighting: EnvironmentMap, render_envmap)
-from .envmap import EnvironmentMap, render_envmap, render_envmap_reference  # noqa: E402,F401
+from .envmap import EnvironmentLighting, EnvironmentMap, render_envmap, render_envmap_reference  # noqa: E402,F401

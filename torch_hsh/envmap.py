@@ -96,6 +96,7 @@ __all__ = [
     "render_envmap",
     "render_envmap_reference",
     "envmap_shading_table",
+    "EnvironmentLighting",
 ]
 
 #: Map frame (x_m, y_m, z_m = up) to world: world = A @ map.
@@ -840,3 +841,53 @@ def render_envmap_reference(
         Cb = brdf.shape[-2] if isinstance(brdf, torch.Tensor) else C
         out = normals.new_zeros(*S, max(C, Cb))
     return out
+
+
+class EnvironmentLighting(torch.nn.Module):
+    """SH lighting as a module: learnable (inverse rendering of the light) or fixed.
+
+    Args:
+        lighting: an :class:`EnvironmentMap` (projected to ``light_order``) or SH
+            coefficients ``(C, (N+1)**2)`` (copied).
+        light_order: SH order N (required for a map; optional truncation otherwise).
+        learnable: coefficients as an ``nn.Parameter`` (default) or a buffer.
+
+    Shapes:
+        ``forward(normals (*S, 3), brdf (*S', C, K))`` -> ``(*S, C)``, i.e.
+        :func:`render_envmap` with this lighting.
+
+    Example:
+        >>> env = EnvironmentMap(torch.ones(8, 16, 3, dtype=torch.float64))
+        >>> light = EnvironmentLighting(env, light_order=2)
+        >>> a = torch.zeros(3, 4, dtype=torch.float64); a[:, 0] = 2.0  # Lambertian, albedo 1
+        >>> light(torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64), a).detach()
+        tensor([[1.0000, 1.0000, 1.0000]], dtype=torch.float64)
+    """
+
+    def __init__(self, lighting: Union[EnvironmentMap, torch.Tensor], light_order: Optional[int] = None,
+                 learnable: bool = True) -> None:
+        super().__init__()
+        if not isinstance(learnable, bool):
+            raise TypeError(f"`learnable` must be a bool, got {type(learnable).__name__}")
+        if isinstance(lighting, EnvironmentMap):
+            if light_order is None:
+                raise ValueError("`light_order` is required when `lighting` is an EnvironmentMap")
+            coeffs = lighting.sh_coefficients(light_order)
+        else:
+            coeffs, _ = _lighting_coefficients(lighting, light_order, lighting if isinstance(lighting, torch.Tensor) else None)
+        coeffs = coeffs.detach().clone()
+        if learnable:
+            self.coefficients = torch.nn.Parameter(coeffs)
+        else:
+            self.register_buffer("coefficients", coeffs)
+        self.light_order = _sh_order(coeffs.shape[-1], "lighting")
+
+    def forward(self, normals: torch.Tensor, brdf: torch.Tensor) -> torch.Tensor:
+        return render_envmap(normals, brdf, self.coefficients)
+
+    def to_map(self, height: int, width: int) -> EnvironmentMap:
+        """The lighting sampled on an equirectangular map (e.g. to look at a recovered light)."""
+        return EnvironmentMap.from_sh(self.coefficients.detach(), height, width)
+
+    def extra_repr(self) -> str:
+        return f"channels={self.coefficients.shape[0]}, light_order={self.light_order}"
