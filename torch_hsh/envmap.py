@@ -49,12 +49,13 @@ The rotation into the local frame is the only per-pixel work: with Euler angles
 :math:`R = R_z(\alpha) R_y(\beta) R_z(\pi)` of the normal (``alpha``, ``beta`` its
 azimuth and polar angle about z), :math:`\lambda = S_\pi J_+ Z_\beta J_- Z_\alpha L`
 with constant matrices :math:`J_\pm` (rotations by :math:`\pm\pi/2` about x) and
-cheap z rotations :math:`Z`. Performance layout: the z rotation by alpha and
-:math:`J_-` are one GEMM of the per-pixel table
-:math:`[1, \cos m\alpha, \sin m\alpha]` against a per-call ``(2N+1, C (N+1)^2)``
-matrix; the z rotation by beta is two element-wise products, and
-:math:`S_\pi J_+` with the table ``T`` folded in is a second GEMM to the
-``(P+1)(P+2)/2`` integrals :math:`E_{pq}`. Pixels are processed in chunks; nothing
+cheap z rotations :math:`Z`. Performance layout: with
+:math:`t(\theta) = [1, \cos m\theta, \sin m\theta]_{m \le N}` the integrals are
+:math:`E = \sum_{a,b} t_a(\alpha) t_b(\beta) Q_{ab}`, where ``Q`` (``(2N+1)^2 C (P+1)(P+2)/2``
+numbers) is built once per call from the lighting and the constant matrices. Per pixel
+there is one GEMM of :math:`t(\alpha)` against ``Q``, a batched contraction with
+:math:`t(\beta)` and the final gather over the K coefficients (one small GEMM for a shared
+BRDF). Pixels are processed in chunks of ``chunk_size`` (cache-sized temporaries); nothing
 per pixel is Monte Carlo.
 
 Singular points: at normals parallel to the view (``|n_xy| < eps``, eps = 1e-12 in
