@@ -345,7 +345,7 @@ def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> to
         Quantised images in the same units as the input.
 
     Example:
-        >>> quantize(torch.tensor([0.5, 2.0]), bits=1)
+        >>> quantize(torch.tensor([0.6, 2.0]), bits=1)
         tensor([1., 1.])
     """
     check_tensor(images, "images")
