@@ -42,3 +42,5 @@ from . import scenes  # noqa: E402,F401  (synthetic photometric-stereo scenes: t
 from . import render  # noqa: E402,F401  (differentiable photometric-stereo image formation)
 from . import ps  # noqa: E402,F401  (photometric-stereo solvers: ps.solve_hsh, ps.robust_lambertian, ...)
 from .ps import solve_hsh  # noqa: E402,F401
+from . import envmap  # noqa: E402,F401  (environment lighting: EnvironmentMap, render_envmap)
+from .envmap import EnvironmentLighting, EnvironmentMap, render_envmap, render_envmap_reference  # noqa: E402,F401

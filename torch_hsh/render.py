@@ -49,6 +49,7 @@ __all__ = [
     "render",
     "render_coefficients",
     "render_model",
+    "brdf_cosine",
     "add_sensor_noise",
     "quantize",
     "order_from_num_coefficients",
@@ -181,6 +182,15 @@ def render_coefficients(
         tensor([0.3183, 0.3183, 0.3183])
     """
     check_tensor(coefficients, "coefficients", min_dims=2)
+    img = brdf_cosine(normals, lights, coefficients, view)
+    e = _intensities(intensities, lights.shape[0], coefficients.shape[-2], img)
+    S = normals.shape[:-1]
+    return img * e.reshape(e.shape[0], *([1] * len(S)), e.shape[1])
+
+
+def _check_coefficient_maps(normals: torch.Tensor, coefficients: torch.Tensor) -> int:
+    """Shape/dtype checks of ``(*S, C, K)`` coefficient maps against ``normals``; returns the order."""
+    check_tensor(coefficients, "coefficients", min_dims=2)
     check_dirs(normals, "normals")
     S = normals.shape[:-1]
     if coefficients.shape[:-2] != S:
@@ -189,11 +199,46 @@ def render_coefficients(
             f"got {tuple(coefficients.shape)}"
         )
     check_same([("normals", normals), ("coefficients", coefficients)])
-    order = order_from_num_coefficients(coefficients.shape[-1])
-    Phi = shading_basis(normals, lights, order, view)  # (L, *S, K)
-    img = torch.einsum("l...k,...ck->l...c", Phi, coefficients)
-    e = _intensities(intensities, lights.shape[0], coefficients.shape[-2], img)
-    return img * e.reshape(e.shape[0], *([1] * len(S)), e.shape[1])
+    return order_from_num_coefficients(coefficients.shape[-1])
+
+
+def brdf_cosine(
+    normals: torch.Tensor,
+    dirs: torch.Tensor,
+    brdf: Union[torch.Tensor, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]],
+    view: Optional[torch.Tensor] = None,
+) -> torch.Tensor:
+    r"""BRDF times cosine, :math:`f(l', v') \max(0, n\cdot l)`, for every incident direction and pixel.
+
+    The BRDF-evaluation piece shared by the point-light renderer and the
+    environment-map reference (:func:`torch_hsh.envmap.render_envmap_reference`).
+
+    Args:
+        normals: ``(*S, 3)``.
+        dirs: ``(L, 3)`` incident directions (toward the light), world frame.
+        brdf: coefficient maps ``(*S, C, K)`` (isotropic Helmholtz; not clamped) or a
+            callable ``f(wi, wo) -> (L, *S, C)`` on local directions.
+        view: optional direction toward the camera (default ``(0, 0, 1)``).
+
+    Returns:
+        ``(L, *S, C)``.
+
+    Example:
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> a = torch.zeros(1, 1, 4); a[..., 0] = 2.0
+        >>> brdf_cosine(n, torch.tensor([[0.0, 0.6, 0.8]]), a)  # 0.8 / pi
+        tensor([[[0.2546]]])
+    """
+    if isinstance(brdf, torch.Tensor):
+        order = _check_coefficient_maps(normals, brdf)
+        Phi = shading_basis(normals, dirs, order, view)  # (L, *S, K)
+        return torch.einsum("l...k,...ck->l...c", Phi, brdf)
+    if callable(brdf):
+        return render_model(normals, dirs, brdf, None, view)
+    raise TypeError(
+        f"`brdf` must be coefficient maps (a tensor of shape (*S, C, K)) or a callable f(wi, wo), "
+        f"got {type(brdf).__name__}"
+    )
 
 
 def render_model(
@@ -300,7 +345,7 @@ def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> to
         Quantised images in the same units as the input.
 
     Example:
-        >>> quantize(torch.tensor([0.5, 2.0]), bits=1)
+        >>> quantize(torch.tensor([0.6, 2.0]), bits=1)
         tensor([1., 1.])
     """
     check_tensor(images, "images")
