@@ -9,9 +9,9 @@ PY := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.torch_hsh_installed
 
-.PHONY: demo test test-fast bench env clean
+.PHONY: demo test test-fast test-lowest bench env clean
 
-$(STAMP): setup.py
+$(STAMP): pyproject.toml setup.py
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q "$(TORCH_SPEC)"
 	$(PY) -m pip install -q -e ".[test,examples]"
@@ -28,9 +28,13 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	OMP_NUM_THREADS=2 $(PY) -m pytest -q -m "not slow" $(ARGS)
 
+# Lowest allowed dependency versions (own venv, torch kept at the CPU wheel), fast tests.
+test-lowest:
+	TORCH_SPEC="$(TORCH_SPEC)" $(PYTHON) .ci/check_lowest_versions.py --venv .venv-lowest $(ARGS)
+
 bench: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]"
 	$(PY) benchmarks/bench_basis.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) .venv-lowest build dist *.egg-info .pytest_cache
