@@ -474,6 +474,20 @@ def read_merl(path: PathLike, interpolation: str = "nearest", unmeasured: str = 
     return MERLBRDF(raw, interpolation=interpolation, unmeasured=unmeasured)
 
 
+def _current_umask() -> int:
+    """The process umask (read from /proc where possible, else set and restored)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def write_merl(path: PathLike, table_or_brdf, overwrite: bool = False, scale=MERL_SCALE) -> pathlib.Path:
     """Write a MERL ``.binary`` file.
 
@@ -515,11 +529,14 @@ def write_merl(path: PathLike, table_or_brdf, overwrite: bool = False, scale=MER
     header = np.asarray(raw.shape[1:], dtype="<i4")
     data = raw.cpu().numpy().astype("<f8", copy=False)
     folder = p.parent if str(p.parent) else pathlib.Path(".")
+    # mkstemp creates 0600; give the file the mode open() would (umask, or the replaced file's mode)
+    mode = (p.stat().st_mode & 0o7777) if p.exists() else (0o666 & ~_current_umask())
     fd, tmp = tempfile.mkstemp(prefix=".merl-", suffix=".tmp", dir=folder)
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(header.tobytes())
             fh.write(np.ascontiguousarray(data).tobytes())
+        os.chmod(tmp, mode)
         os.replace(tmp, p)
     except BaseException:
         if os.path.exists(tmp):
