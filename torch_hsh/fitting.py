@@ -660,8 +660,13 @@ def fit(
             wt = weights.to(f64)
         else:
             raise ValueError(f"`weights` must be (N,) or (B, N) with N={N}, B={Bn}; got {tuple(weights.shape)}")
-        if validation_enabled() and bool((wt < 0).any()):
-            raise ValueError("`weights` must be non-negative")
+        if validation_enabled():
+            if bool((wt < 0).any()):
+                raise ValueError("`weights` must be non-negative")
+            empty = (wt == 0).all(dim=-1)
+            if bool(empty.any()):
+                where = "" if wt.shape[0] == 1 else f" for batch entry {int(empty.nonzero()[0, 0])}"
+                raise ValueError(f"`weights` are all zero{where}: no sample takes part in the fit")
     else:
         wt = None
 
@@ -848,6 +853,11 @@ def truncate(
     return coeffs[..., keep]
 
 
+#: Relative excess of sum(a_k^2) over ``total_energy`` that :func:`energy_accuracy` tolerates
+#: (quadrature / rounding error of the two estimates); beyond it the energy is wrong.
+ENERGY_EXCESS_TOLERANCE = 1e-2
+
+
 def energy_accuracy(
     coeffs: torch.Tensor,
     total_energy: Union[torch.Tensor, float],
@@ -871,6 +881,11 @@ def energy_accuracy(
         ``(..., P + 1)``, non-decreasing in the last dimension; equals 1 at
         ``P`` for a function band-limited to ``P`` (Parseval).
 
+    Raises:
+        ValueError: ``total_energy <= 0``, or smaller than the energy the
+            coefficients hold (``Acc(P) > 1 + ENERGY_EXCESS_TOLERANCE``):
+            by Bessel's inequality that energy is not the function's.
+
     Example:
         >>> a = torch.zeros(4, dtype=torch.float64); a[0], a[2] = 3.0, 4.0
         >>> energy_accuracy(a, 25.0).tolist()
@@ -890,7 +905,14 @@ def energy_accuracy(
     labels = b.function_orders(P).to(coeffs.device)
     onehot = (labels[:, None] == torch.arange(P + 1, device=coeffs.device)[None, :]).to(coeffs.dtype)  # (K, P+1)
     per_order = (coeffs * coeffs) @ onehot
-    return torch.cumsum(per_order, dim=-1) / total_energy.to(coeffs.dtype).unsqueeze(-1)
+    acc = torch.cumsum(per_order, dim=-1) / total_energy.to(coeffs.dtype).unsqueeze(-1)
+    if validation_enabled() and bool((acc[..., -1] > 1.0 + ENERGY_EXCESS_TOLERANCE).any()):
+        worst = float(acc[..., -1].max())
+        raise ValueError(
+            f"`total_energy` is below the energy the coefficients hold (Acc(P) = {worst:.6g} > 1): pass the "
+            "full energy of the function (e.g. brdf_energy), not a truncated or mismatched one"
+        )
+    return acc
 
 
 # --------------------------------------------------------------------------

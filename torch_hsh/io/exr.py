@@ -153,15 +153,23 @@ def write_exr(path, channels: Dict[str, object], half: bool = False, overwrite: 
     return path
 
 
-def _read_file(path, what="EXR file"):
+def _open(path, what: str, **kwargs):
+    """``OpenEXR.File`` with every failure (corrupt, truncated) as a ``ValueError`` naming the file."""
     OpenEXR = _openexr()
     path = Path(path)
     _check_existing(path, what)
     try:
-        f = OpenEXR.File(str(path), separate_channels=True)
+        f = OpenEXR.File(str(path), **kwargs)
+        n_parts = len(f.parts)
     except Exception as e:
         raise ValueError(f"could not read OpenEXR file {path}: {e}") from e
+    if n_parts == 0:  # the bindings swallow pixel-read errors and return a file without parts
+        raise ValueError(f"could not read OpenEXR file {path}: corrupt or truncated pixel data")
     return f
+
+
+def _read_file(path, what="EXR file"):
+    return _open(path, what, separate_channels=True)
 
 
 def read_exr(path) -> Dict[str, np.ndarray]:
@@ -189,10 +197,7 @@ def read_exr(path) -> Dict[str, np.ndarray]:
 
 
 def _read_header(path) -> dict:
-    OpenEXR = _openexr()
-    path = Path(path)
-    _check_existing(path, "EXR file")
-    with OpenEXR.File(str(path), header_only=True) as f:
+    with _open(path, "EXR file", header_only=True) as f:
         return dict(f.header())
 
 
