@@ -597,6 +597,7 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
         Zero where either direction is below the horizon or zero.
 
     Example:
+        >>> import torch_hsh
         >>> wi = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1).abs()
         >>> wo = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1).abs()
         >>> torch_hsh.helmholtz_isotropic(wi, wo, 3).shape
@@ -630,6 +631,7 @@ def helmholtz_isotropic_cosines(
         ``(..., K)`` exactly as :func:`helmholtz_isotropic` for the same geometry.
 
     Example:
+        >>> import torch_hsh
         >>> c = torch.tensor([0.5])
         >>> torch_hsh.helmholtz_isotropic_cosines(c, c, torch.tensor([-1.0]), 2).shape
         torch.Size([1, 10])
@@ -661,6 +663,7 @@ def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> tor
         :func:`anisotropic_indices` (pairs ``j <= k``, j-major).
 
     Example:
+        >>> import torch_hsh
         >>> w = torch.tensor([[0.0, 0.6, 0.8]])
         >>> torch_hsh.helmholtz_anisotropic(w, w, 1).shape
         torch.Size([1, 10])
@@ -700,6 +703,7 @@ def helmholtz_isotropic_world(
         ``(..., K)`` equal to ``helmholtz_isotropic(to_local(wi), to_local(wo), P)``.
 
     Example:
+        >>> import torch_hsh
         >>> n = torch.tensor([0.0, 0.0, 1.0])
         >>> l = torch.tensor([[0.3, 0.0, 0.95]])
         >>> torch_hsh.helmholtz_isotropic_world(l, n, n, 2).shape

@@ -289,7 +289,10 @@ def add_sensor_noise(
 
 
 def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> torch.Tensor:
-    """Clip to ``[0, max_value]`` and quantise to ``2**bits - 1`` levels (straight-through gradient).
+    """Clip to ``[0, max_value]`` and round to the ``2**bits`` codes ``0 .. 2**bits - 1`` (straight-through gradient).
+
+    Code ``k`` stands for ``k * max_value / (2**bits - 1)``; halfway values round
+    to the even code (``torch.round``).
 
     Args:
         images: any shape.
@@ -300,8 +303,10 @@ def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> to
         Quantised images in the same units as the input.
 
     Example:
-        >>> quantize(torch.tensor([0.5, 2.0]), bits=1)
-        tensor([1., 1.])
+        >>> quantize(torch.tensor([0.5, 2.0]), bits=1)  # 0.5 is halfway: even code 0; 2.0 saturates
+        tensor([0., 1.])
+        >>> quantize(torch.tensor([0.3, 0.7]), bits=2)  # codes 1 and 2 of 0..3
+        tensor([0.3333, 0.6667])
     """
     check_tensor(images, "images")
     if isinstance(bits, bool) or int(bits) != bits or not 1 <= bits <= 32:
