@@ -237,10 +237,10 @@ def _table_to_raw(table: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
 class MERLBRDF(nn.Module):
     r"""A tabulated isotropic BRDF on the MERL half/difference grid.
 
-    Attributes (buffers):
-        raw: ``(3, N_th, N_td, N_pd)`` float64 values as stored in the file
-            (negative = not measured). Writing keeps them bit-exact.
-        scale: ``(3,)`` per-channel factors (:data:`MERL_SCALE` by default).
+    Attributes:
+        raw: buffer ``(3, N_th, N_td, N_pd)``, float64 values as stored in the
+            file (negative = not measured). Writing keeps them bit-exact.
+        scale: buffer ``(3,)``, per-channel factors (:data:`MERL_SCALE` by default).
 
     Calling ``brdf(wi, wo)`` with local directions ``(..., 3)`` returns
     ``(..., 3)`` RGB BRDF values in the dtype of the directions:
