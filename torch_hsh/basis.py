@@ -50,13 +50,12 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
-from typing import Dict, List, Tuple
+from typing import Dict, Tuple
 
 import torch
 
 from ._checks import (
     MAX_ANISOTROPIC_ORDER,
-    MAX_ORDER,
     broadcast_shapes,
     check_dirs,
     check_order,

@@ -111,7 +111,7 @@ def load_merl(folder: Path, n_theta, n_phi, progress):
     try:
         from torch_hsh.io.merl import read_merl
     except ImportError as e:  # pragma: no cover - depends on the checkout
-        raise SystemExit(f"--merl needs torch_hsh.io.merl.read_merl ({e})")
+        raise SystemExit(f"--merl needs torch_hsh.io.merl.read_merl ({e})") from e
     files = sorted(folder.glob("*.binary"))
     if not files:
         raise SystemExit(f"--merl: no .binary files in {folder}")
