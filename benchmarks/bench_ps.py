@@ -65,7 +65,7 @@ def run_synthetic(n_pix, n_lights, order, repeat=3):
     l = torch.nn.functional.normalize(l, dim=-1)
     alb = 0.2 + 0.6 * torch.rand(n_pix, 3, generator=g, dtype=torch.float64)
     img = render(n, l, BlinnPhong(alb, torch.full((n_pix, 1), 0.3, dtype=torch.float64),
-                                  torch.full((n_pix, 1), 20.0, dtype=torch.float64)), read_noise=1e-3, seed=0)
+                                  torch.full((n_pix, 1), 20.0, dtype=torch.float64)), read_std=1e-3, seed=0)
     times = []
     for _ in range(max(1, repeat)):
         t = time.perf_counter()

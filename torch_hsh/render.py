@@ -34,6 +34,7 @@ Shapes everywhere: lights ``(L, 3)``; intensities ``None`` (all ones),
 """
 from __future__ import annotations
 
+import warnings
 from typing import Callable, Optional, Union
 
 import torch
@@ -51,6 +52,7 @@ __all__ = [
     "render_model",
     "add_sensor_noise",
     "quantize",
+    "order_from_num_functions",
     "order_from_num_coefficients",
 ]
 
@@ -68,11 +70,11 @@ def view_direction(like: torch.Tensor) -> torch.Tensor:
     return torch.tensor(VIEW, dtype=like.dtype, device=like.device)
 
 
-def order_from_num_coefficients(k: int) -> int:
+def order_from_num_functions(k: int) -> int:
     """Order ``P`` with ``num_isotropic(P) == k``; ``ValueError`` if there is none.
 
     Example:
-        >>> order_from_num_coefficients(20)
+        >>> order_from_num_functions(20)
         3
     """
     for p in range(0, 41):
@@ -85,6 +87,10 @@ def order_from_num_coefficients(k: int) -> int:
         f"the last axis of the coefficient maps has {k} entries, which is not the size of an isotropic "
         "Helmholtz basis (1, 4, 10, 20, 35, 56, ... = (P+1)(P+2)(P+3)/6)"
     )
+
+
+#: Alias of :func:`order_from_num_functions` (the earlier name).
+order_from_num_coefficients = order_from_num_functions
 
 
 def _check_lights(lights: torch.Tensor, name: str = "lights") -> torch.Tensor:
@@ -189,7 +195,7 @@ def render_coefficients(
             f"got {tuple(coefficients.shape)}"
         )
     check_same([("normals", normals), ("coefficients", coefficients)])
-    order = order_from_num_coefficients(coefficients.shape[-1])
+    order = order_from_num_functions(coefficients.shape[-1])
     Phi = shading_basis(normals, lights, order, view)  # (L, *S, K)
     img = torch.einsum("l...k,...ck->l...c", Phi, coefficients)
     e = _intensities(intensities, lights.shape[0], coefficients.shape[-2], img)
@@ -319,6 +325,16 @@ def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> to
     return x + (q - x).detach()
 
 
+def _renamed(value: float, old_value: Optional[float], name: str, old: str) -> float:
+    """Resolve a renamed keyword: the old name still works, with a DeprecationWarning."""
+    if old_value is None:
+        return value
+    if value != 0.0:
+        raise TypeError(f"pass `{name}` only (`{old}` is its earlier name)")
+    warnings.warn(f"`{old}` is deprecated; use `{name}`", DeprecationWarning, stacklevel=3)
+    return old_value
+
+
 def render(
     normals: torch.Tensor,
     lights: torch.Tensor,
@@ -326,12 +342,15 @@ def render(
     intensities: Optional[torch.Tensor] = None,
     visibility: Optional[torch.Tensor] = None,
     view: Optional[torch.Tensor] = None,
-    read_noise: float = 0.0,
-    shot_noise: float = 0.0,
+    read_std: float = 0.0,
+    shot_gain: float = 0.0,
     seed: Optional[int] = None,
     saturation: Optional[float] = None,
     bits: Optional[int] = None,
     mask: Optional[torch.Tensor] = None,
+    *,
+    read_noise: Optional[float] = None,
+    shot_noise: Optional[float] = None,
 ) -> torch.Tensor:
     r"""Render photometric-stereo images (section 7 of the math notes).
 
@@ -345,9 +364,13 @@ def render(
         intensities: ``None`` (ones), ``(L,)`` or ``(L, C)`` light intensities.
         visibility: optional ``(L, *S)`` cast-shadow mask (bool or float in [0, 1]).
         view: optional direction toward the camera (default ``(0, 0, 1)``).
-        read_noise: std of additive Gaussian noise.
-        shot_noise: variance per unit signal of the shot noise.
+        read_std: std of the additive Gaussian read noise (as in
+            :func:`add_sensor_noise`).
+        shot_gain: variance per unit signal of the shot noise (as in
+            :func:`add_sensor_noise`).
         seed: noise seed (reproducible results).
+        read_noise, shot_noise: earlier names of ``read_std`` and
+            ``shot_gain`` (keyword only, deprecated).
         saturation: clip radiance at this level (also the full-scale value for
             quantisation); ``None``: no clipping (quantisation then uses the
             maximum of the rendered images as full scale).
@@ -362,7 +385,7 @@ def render(
     Example:
         >>> n = torch.nn.functional.normalize(torch.randn(5, 3).abs(), dim=-1)
         >>> a = torch.zeros(5, 3, 10); a[..., 0] = 1.0
-        >>> render(n, torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), a, read_noise=0.01, seed=0).shape
+        >>> render(n, torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), a, read_std=0.01, seed=0).shape
         torch.Size([2, 5, 3])
     """
     check_dirs(normals, "normals")
@@ -386,7 +409,9 @@ def render(
                 f"`visibility` must have shape (L, *S) = {(lights.shape[0], *S)}, got {tuple(visibility.shape)}"
             )
         img = img * visibility.to(img.dtype).unsqueeze(-1)
-    img = add_sensor_noise(img, read_noise, shot_noise, seed)
+    read_std = _renamed(read_std, read_noise, "read_std", "read_noise")
+    shot_gain = _renamed(shot_gain, shot_noise, "shot_gain", "shot_noise")
+    img = add_sensor_noise(img, read_std, shot_gain, seed)
     if saturation is not None:
         if not saturation > 0:
             raise ValueError(f"`saturation` must be > 0, got {saturation}")

@@ -350,7 +350,7 @@ def read_envmap(path) -> np.ndarray:
     r"""Read an RGB (latitude-longitude) environment map as ``(H, W, 3)`` float32.
 
     Accepts bare ``R, G, B`` channels (the usual layout, also of
-    ``/work/shared/data/envmaps``) or a single layer ``layer.R/G/B``; an
+    ``../shared/data/envmaps``) or a single layer ``layer.R/G/B``; an
     alpha channel is ignored. Row 0 is the top (zenith) in the usual
     convention; no remapping is done here.
 
