@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 
@@ -222,9 +222,15 @@ def _iso_gather(order: int):
     for p, r, q in _iso_list(P):
         a, b = col[(p, q)], col[(r, q)]
         if p == r:
-            i1.append(a), j1.append(L + a), i2.append(L), j2.append(0)
+            i1.append(a)
+            j1.append(L + a)
+            i2.append(L)
+            j2.append(0)
         else:
-            i1.append(a), j1.append(b), i2.append(b), j2.append(a)
+            i1.append(a)
+            j1.append(b)
+            i2.append(b)
+            j2.append(a)
     # m of every polar-table column (to attach the azimuthal factor G_q)
     qcol = [0] * L
     for (n, m), cc in col.items():
@@ -245,7 +251,7 @@ def _aniso_gather(order: int):
 _DEVICE_CACHE: Dict[tuple, torch.Tensor] = {}
 
 
-def _const(key: tuple, values, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+def _const(key: tuple, values, device: torch.device, dtype: Optional[torch.dtype]) -> torch.Tensor:
     """Cached constant tensor on ``device``/``dtype``."""
     full = key + (str(device), dtype)
     t = _DEVICE_CACHE.get(full)
@@ -379,9 +385,9 @@ def _iso_kernel_t(zi, zo, a, rho, sio, valid, order: int, same: bool = False) ->
         G.append(a1 * mask)
         for _ in range(2, P + 1):
             G.append(2.0 * a1 * G[-1] - r1 * G[-2])
-    G = torch.stack(G, dim=0) * _col(("gsc", P), g_scale, dev, dt)
+    Gt = torch.stack(G, dim=0) * _col(("gsc", P), g_scale, dev, dt)
     Ri = _polar_table_t(zi, P)
-    Ro = (Ri if same else _polar_table_t(zo, P)) * G.index_select(0, _const(("qcol", P), qcol, dev, None))
+    Ro = (Ri if same else _polar_table_t(zo, P)) * Gt.index_select(0, _const(("qcol", P), qcol, dev, None))
     X = torch.cat([Ri, Ri.new_zeros(1, Ri.shape[1])], dim=0)
     Y = torch.cat([Ro * (1.0 / math.sqrt(2.0)), Ro], dim=0)
     out = X.index_select(0, _const(("iso_i1", P), i1, dev, None)) * Y.index_select(

@@ -190,19 +190,26 @@ class _Staging:
         if self.path is not None and self.path.exists():
             shutil.rmtree(self.path, ignore_errors=True)
 
+    @property
+    def folder(self) -> Path:
+        """The staging folder (only inside the ``with`` block, before the commit)."""
+        if self.path is None:
+            raise RuntimeError("the staging folder is not open")
+        return self.path
+
     def file(self, name: str) -> Path:
         self.files.append(name)
-        return self.path / name
+        return self.folder / name
 
     def write_manifest(self, meta: Dict[str, Any]) -> None:
         files = {}
         for name in self.files:
-            p = self.path / name
+            p = self.folder / name
             files[name] = {"bytes": p.stat().st_size, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()}
         manifest = dict(meta, format=MANIFEST_FORMAT, format_version=MANIFEST_VERSION, files=files)
-        tmp = self.path / (MANIFEST + ".tmp")
+        tmp = self.folder / (MANIFEST + ".tmp")
         tmp.write_text(json.dumps(manifest, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        os.replace(tmp, self.path / MANIFEST)
+        os.replace(tmp, self.folder / MANIFEST)
 
     def commit(self) -> None:
         """Old result aside, new one in place (signals held), then the old one removed."""
@@ -212,7 +219,7 @@ class _Staging:
                 old = self.target.parent / f".{self.target.name}.old-{secrets.token_hex(4)}"
                 os.rename(self.target, old)
             try:
-                os.rename(self.path, self.target)
+                os.rename(self.folder, self.target)
             except BaseException:
                 if old is not None:
                     os.rename(old, self.target)
@@ -295,6 +302,7 @@ def synthetic_scene(size: int = 48, n_lights: int = 40, seed: int = 0, dtype=tor
 
 def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     if args.data is None:
+        d: Dict[str, Any]
         if args.drop_first >= args.lights:
             ap.error(f"argument --drop-first: {args.drop_first} leaves no image of the {args.lights} synthetic lights")
         left = args.lights - args.drop_first if args.max_images is None else min(
@@ -312,15 +320,15 @@ def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     if not folder.is_dir():
         ap.error(f"argument --data: {folder} is not a folder")
     try:
-        d = load_diligent(folder, dtype=torch.float64, normalize_intensities=True,
-                          drop_first=args.drop_first, max_images=args.max_images)
+        ds = load_diligent(folder, dtype=torch.float64, normalize_intensities=True,
+                           drop_first=args.drop_first, max_images=args.max_images)
     except ValueError as err:
         if "no images left" in str(err):
             ap.error(f"argument --drop-first/--max-images: {err}")
         raise InputError(str(err)) from err
     except (OSError, TypeError) as err:
         raise InputError(str(err)) from err
-    return dict(images=d.images, lights=d.lights, intensities=None, mask=d.mask, normals_gt=d.normals_gt,
+    return dict(images=ds.images, lights=ds.lights, intensities=None, mask=ds.mask, normals_gt=ds.normals_gt,
                 name=str(folder))
 
 
@@ -360,8 +368,8 @@ def _save_pictures(stage: _Staging, data, res, err_map, confidence, relit_idx: i
         fig.savefig(stage.file("error_map.png"), dpi=100)
         plt.close(fig)
     lt = data["lights"][relit_idx : relit_idx + 1].to(res.normals)
-    e = None if data["intensities"] is None else data["intensities"][relit_idx : relit_idx + 1].to(res.normals)
-    relit = res.relight(lt, e)[0].detach().cpu().numpy()
+    ei = None if data["intensities"] is None else data["intensities"][relit_idx : relit_idx + 1].to(res.normals)
+    relit = res.relight(lt, ei)[0].detach().cpu().numpy()
     inp = data["images"][relit_idx].detach().cpu().numpy()
     scale = float(np.percentile(inp[mask], 99.5)) if mask.any() else 1.0
     scale = scale or 1.0
@@ -508,7 +516,7 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
                         for name, m, md, tt in rows},
             "solver_info": res.info,
         }
-        err_map = None
+        err_map: Optional[np.ndarray] = None
         if gt is not None:
             metrics["mean_angular_error_deg"] = rows[2][1]
             metrics["median_angular_error_deg"] = rows[2][2]

@@ -309,6 +309,7 @@ def project(
             if part.shape != acc.shape:
                 raise ValueError(f"`brdf` returned inconsistent channel counts across chunks: {tuple(part.shape)} vs {tuple(acc.shape)}")
             acc = acc + part
+    assert acc is not None  # the quadrature has at least one chunk
     return acc
 
 
@@ -353,6 +354,7 @@ def brdf_energy(
         v = _call_brdf(brdf, wi, wo)
         part = ((v * v) * (w if v.dim() == 1 else w[:, None])).sum(0)
         acc = part if acc is None else acc + part
+    assert acc is not None  # the quadrature has at least one chunk
     return acc
 
 
@@ -687,9 +689,9 @@ def fit(
     solver = None
     cond = None
     if method in ("auto", "cholesky"):
-        Lc, info = torch.linalg.cholesky_ex(G)
+        Lc, chol_info = torch.linalg.cholesky_ex(G)
         d = torch.diagonal(Lc, dim1=-2, dim2=-1).abs()
-        ok = bool((info == 0).all())
+        ok = bool((chol_info == 0).all())
         if ok:
             cond = (d.max(-1).values / d.min(-1).values.clamp(min=1e-300)) ** 2
             ok = bool((cond < 1e12).all()) or method == "cholesky"
@@ -938,12 +940,12 @@ def _albedo_matrix(b: Basis, P: int, dtype, device):
     if isinstance(b, HelmholtzAnisotropic):
         idx = _hb.anisotropic_indices(P).tolist()
         S = torch.zeros(len(idx), (P + 1) ** 2, dtype=torch.float64)
-        I = {0: _I0, 2: _I1}  # flat indices of H_0^0, H_1^0
+        Iflat = {0: _I0, 2: _I1}  # flat indices of H_0^0, H_1^0
         for k, (p, q, r, s) in enumerate(idx):
             j, kk = p * p + p + q, r * r + r + s
             n = 1.0 / math.sqrt(2.0 + 2.0 * (j == kk))
-            S[k, kk] += n * I.get(j, 0.0)
-            S[k, j] += n * I.get(kk, 0.0)
+            S[k, kk] += n * Iflat.get(j, 0.0)
+            S[k, j] += n * Iflat.get(kk, 0.0)
         return S.to(dtype=dtype, device=device), lambda wo: _hb.hsh(wo, P)
     return None, None
 

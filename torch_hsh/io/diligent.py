@@ -51,7 +51,7 @@ import struct
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -130,9 +130,9 @@ def _read_png(path: Path) -> np.ndarray:
     from PIL import Image
 
     try:
-        with Image.open(path) as im:
-            im = im.convert("RGB") if ctype == 3 else (im.convert("L") if ctype == 0 else im)
-            img = np.asarray(im)
+        with Image.open(path) as opened:
+            conv = opened.convert("RGB") if ctype == 3 else (opened.convert("L") if ctype == 0 else opened)
+            img = np.asarray(conv)
     except Exception as err:
         raise ValueError(f"{path}: cannot decode the PNG ({err})") from err
     if img.dtype == bool:
@@ -196,7 +196,8 @@ def _read_rows(path: Path, what: str) -> np.ndarray:
 
 def _read_names(path: Path) -> List[str]:
     """Image names of ``filenames.txt``: relative paths inside the folder, each listed once."""
-    names, first_line = [], {}
+    names: List[str] = []
+    first_line: Dict[str, int] = {}
     for lineno, line in enumerate(_read_text(path, "image names").splitlines(), start=1):
         name = line.strip()
         if not name:
@@ -360,7 +361,7 @@ def load_diligent(
     """
     if dtype not in _FLOAT_DTYPES:
         raise TypeError(f"`dtype` must be torch.float32 or torch.float64, got {dtype}")
-    drop_first = _check_count(drop_first, "drop_first")
+    drop_first = int(_check_count(drop_first, "drop_first") or 0)
     max_images = _check_count(max_images, "max_images", allow_none=True)
     folder = Path(path)
     if not folder.is_dir():
@@ -409,7 +410,7 @@ def load_diligent(
         raise ValueError(f"{folder}: no images left after drop_first={drop_first}, max_images={max_images}")
     _check_light_geometry(lights, ldir_file, first_row=drop_first + 1, check_rank=check_lights)
 
-    images = None
+    images: Optional[np.ndarray] = None
     depth0 = None
     for i, name in enumerate(names):
         f = folder / name
@@ -436,6 +437,7 @@ def load_diligent(
         elif depth != depth0:
             raise ValueError(f"{f}: bit depth {depth} differs from the first image's {depth0}")
         images[i] = img
+    assert images is not None  # at least one name (checked above)
     images /= 65535.0 if depth0 == 16 else 255.0
     if normalize_intensities:
         images /= intens[:, None, None, :].astype(images.dtype)

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -85,7 +85,7 @@ def _suffixes(name: str, c: int) -> List[str]:
     return [f"{k:0{width}d}" for k in range(c)]
 
 
-def write_exr(path, channels: Dict[str, object], half: bool = False, overwrite: bool = False, header=None) -> Path:
+def write_exr(path, channels: Mapping[str, Any], half: bool = False, overwrite: bool = False, header=None) -> Path:
     r"""Write named channels to a single-part OpenEXR file.
 
     Args:

@@ -273,6 +273,9 @@ class MERLBRDF(nn.Module):
         [1.0, 1.15, 1.66]
     """
 
+    raw: torch.Tensor
+    scale: torch.Tensor
+
     def __init__(self, raw, scale=MERL_SCALE, interpolation: str = "nearest", unmeasured: str = "zero") -> None:
         super().__init__()
         raw = _as_table(raw, "raw").to(torch.float64)
@@ -301,7 +304,8 @@ class MERLBRDF(nn.Module):
     @property
     def shape(self) -> Tuple[int, int, int]:
         """Bin counts ``(N_th, N_td, N_pd)``."""
-        return tuple(self.raw.shape[1:])
+        n_th, n_td, n_pd = self.raw.shape[1:]
+        return int(n_th), int(n_td), int(n_pd)
 
     @property
     def table(self) -> torch.Tensor:
