@@ -1,8 +1,11 @@
 #!/usr/bin/env python3
 """Install the lowest versions that pyproject.toml allows and run the fast tests.
 
-Every runtime dependency ``name>=X`` of ``[project] dependencies`` is pinned to
-``name==X`` (as a pip constraint, so transitive dependencies resolve normally);
+Every runtime dependency ``name>=X`` of ``[project] dependencies``, and of the
+``examples`` extra (matplotlib, used by ``torch-hsh ps`` for its figures), is
+pinned to ``name==X`` (as a pip constraint, so transitive dependencies resolve
+normally; the test tools pytest and hypothesis are not our floors and resolve
+normally too);
 torch is pinned to the local CPU wheel (``$TORCH_SPEC``, default
 ``torch==2.13.0``) because a floor resolved from the index would pull the CUDA
 build. Only wheels are accepted (``--only-binary=:all:``): a floor that has no
@@ -64,7 +67,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch_spec = os.environ.get("TORCH_SPEC", "torch==2.13.0")
     meta = _load_pyproject(ROOT / "pyproject.toml")["project"]
-    pins = lowest_pins(meta["dependencies"], torch_spec)
+    pins = lowest_pins(meta["dependencies"] + meta["optional-dependencies"]["examples"], torch_spec)
     venv = Path(args.venv)
     py = venv / "bin" / "python"
     t0 = time.perf_counter()
@@ -77,7 +80,7 @@ def main(argv=None) -> int:
     if run(pip + [torch_spec]):
         return 1
     # runtime floors exactly; the test tools resolve normally (they are not our floors)
-    rc = run(pip + ["--only-binary=:all:", "-c", str(constraints), str(ROOT), "pytest", "hypothesis"])
+    rc = run(pip + ["--only-binary=:all:", "-c", str(constraints), f"{ROOT}[examples]", "pytest", "hypothesis"])
     if rc:
         return rc
     run([str(py), "-m", "pip", "list", "--format=freeze"])

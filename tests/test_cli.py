@@ -20,6 +20,12 @@ from torch_hsh import cli, ps
 from torch_hsh.io.diligent import _read_png, save_diligent
 
 ROOT = Path(__file__).resolve().parents[1]
+try:
+    import matplotlib  # noqa: F401  (error_map.png / relighting.png need it; the rest does not)
+
+    FIGURES = ("error_map.png", "relighting.png")
+except ImportError:  # pragma: no cover - the lowest-versions check installs it, a bare install may not
+    FIGURES = ()
 FAST = ["--size", "12", "--lights", "8", "--quiet"]
 
 
@@ -172,7 +178,7 @@ def test_run_writes_manifest_last_and_strict_json(tmp_path, fake_solver):
     manifest = _strict_json(out / cli.MANIFEST)
     assert manifest["format"] == cli.MANIFEST_FORMAT
     assert set(manifest["files"]) | {cli.MANIFEST} == set(os.listdir(out))
-    for name in ("normals.npy", "coefficients.exr", "metrics.json", "normal_map.png", "error_map.png"):
+    for name in ("normals.npy", "coefficients.exr", "metrics.json", "normal_map.png", *FIGURES):
         assert name in manifest["files"], name
     m = _strict_json(out / "metrics.json")
     assert m["solver_info"]["noise_sigma"] is None  # NaN -> null
@@ -181,6 +187,17 @@ def test_run_writes_manifest_last_and_strict_json(tmp_path, fake_solver):
     assert _leftovers(tmp_path) == []
 
 
+def test_without_matplotlib_figures_are_skipped_and_said(tmp_path, capsys, fake_solver, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    out = tmp_path / "res"
+    cli.ps_main(["--out", str(out), "--size", "12", "--lights", "8"])
+    assert "matplotlib is not installed" in capsys.readouterr().out
+    assert not (out / "error_map.png").exists() and not (out / "relighting.png").exists()
+    assert (out / "normal_map.png").exists()
+    assert set(_strict_json(out / cli.MANIFEST)["files"]) | {cli.MANIFEST} == set(os.listdir(out))
+
+
+@pytest.mark.skipif(not FIGURES, reason="needs matplotlib for error_map.png")
 def test_rerun_replaces_own_result_and_drops_stale_files(tmp_path, fake_solver):
     out = tmp_path / "res"
     cli.ps_main(["--out", str(out), *FAST])  # synthetic: ground truth -> error_map.png

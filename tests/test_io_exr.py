@@ -97,13 +97,14 @@ def test_truncated_pixel_data_names_the_file(tmp_path):
     raw = (tmp_path / "full.exr").read_bytes()
     (tmp_path / "half.exr").write_bytes(raw[: len(raw) // 2])  # header intact, pixel chunks cut
     for reader in (read_exr, read_envmap, read_image_stack_exr):
-        with pytest.raises(ValueError, match=r"could not read OpenEXR file .*half\.exr: corrupt or truncated"):
+        # the message names the file (the reason's wording depends on the OpenEXR version)
+        with pytest.raises(ValueError, match=r"could not read OpenEXR file .*half\.exr: "):
             reader(tmp_path / "half.exr")
     cm = tmp_path / "cm.exr"
     write_coefficient_maps_exr(cm, np.random.default_rng(1).random((64, 64, 3, 4)).astype(np.float32))
     raw = cm.read_bytes()
     cm.write_bytes(raw[: len(raw) // 2])
-    with pytest.raises(ValueError, match=r"cm\.exr: corrupt or truncated"):
+    with pytest.raises(ValueError, match=r"could not read OpenEXR file .*cm\.exr: "):
         read_coefficient_maps_exr(cm)
 
 
