@@ -226,6 +226,19 @@ def test_refuses_folders_that_are_not_ours(tmp_path, capsys, fake_solver, user_f
     assert cli.is_result_folder(out) and not (out / "thesis.tex").exists()
 
 
+def test_never_replaces_cwd_home_or_the_data_folder(tmp_path, capsys, fake_solver, monkeypatch):
+    data = _small_dataset(tmp_path / "obj")
+    monkeypatch.chdir(tmp_path)
+    for out in (".", str(tmp_path.parent), str(Path.home())):
+        code, err = _run(["ps", "--out", out, *FAST, "--overwrite"], capsys)
+        assert code == 2 and "folder of its own" in err
+    for out in (data, data / "res", tmp_path):
+        code, err = _run(["ps", "--data", str(data), "--out", str(out), "--quiet", "--overwrite"], capsys)
+        assert code == 2
+    assert fake_solver.calls == [] and sorted(os.listdir(tmp_path)) == ["obj"]
+    assert (data / "light_directions.txt").exists()
+
+
 def test_our_result_with_a_user_file_added_is_not_ours(tmp_path, capsys, fake_solver):
     out = tmp_path / "res"
     cli.ps_main(["--out", str(out), *FAST])

@@ -134,6 +134,11 @@ def is_result_folder(folder) -> bool:
 def _check_out(ap: argparse.ArgumentParser, out: Path, overwrite: bool, option: str = "--out") -> Path:
     """Static checks of the output folder (nothing is created): exit 2 on a bad ``--out``."""
     out = Path(os.path.abspath(out))
+    cwd = Path(os.getcwd())
+    if out == cwd or out in cwd.parents or out == Path.home() or out.parent == out:
+        # never replaced as a whole, not even with --overwrite
+        ap.error(f"argument {option}: {out} is the current folder, one of its parents, the home folder or the "
+                 "root; give a folder of its own for the result")
     if out.exists() and not out.is_dir():
         ap.error(f"argument {option}: {out} exists and is not a folder")
     if out.is_dir():
@@ -469,6 +474,10 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     # ---- arguments and inputs, nothing created yet
     dev = _parse_device(ap, args.device)
     out = _check_out(ap, Path(args.out), args.overwrite)
+    if args.data is not None:
+        data_dir = Path(os.path.abspath(args.data))
+        if data_dir == out or out in data_dir.parents or data_dir in out.parents:
+            ap.error("argument --out: must not be the --data folder, inside it or around it")
     figures = None
     if args.figures is not None:
         figures = Path(os.path.abspath(args.figures))
