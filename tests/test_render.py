@@ -99,6 +99,22 @@ def test_noise_seeded_and_statistics():
     assert abs(float((a - x).mean())) < 5 * expected / math.sqrt(x.numel())
 
 
+def test_render_noise_names_match_add_sensor_noise():
+    n, l = _normals(40), _lights(6)
+    a = torch.zeros(40, 3, 10, dtype=DT)
+    a[..., 0] = 1.0
+    clean = R.render(n, l, a)
+    got = R.render(n, l, a, read_std=0.01, shot_gain=0.002, seed=5)
+    assert torch.equal(got, R.add_sensor_noise(clean, read_std=0.01, shot_gain=0.002, seed=5))
+    with pytest.warns(DeprecationWarning) as rec:
+        old = R.render(n, l, a, read_noise=0.01, shot_noise=0.002, seed=5)
+    assert sorted(str(r.message).split("`")[1] for r in rec) == ["read_noise", "shot_noise"]
+    assert torch.equal(old, got)  # the earlier names still work
+    with pytest.raises(TypeError, match="read_std"):
+        R.render(n, l, a, read_std=0.01, read_noise=0.01)
+    assert R.order_from_num_coefficients is R.order_from_num_functions
+
+
 def test_quantize_and_saturation():
     x = torch.tensor([-0.1, 0.3, 0.50001, 2.0], dtype=DT, requires_grad=True)
     q = R.quantize(x, bits=2, max_value=1.0)

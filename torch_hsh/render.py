@@ -34,6 +34,7 @@ Shapes everywhere: lights ``(L, 3)``; intensities ``None`` (all ones),
 """
 from __future__ import annotations
 
+import warnings
 from typing import Callable, Optional, Union
 
 import torch
@@ -52,6 +53,7 @@ __all__ = [
     "brdf_cosine",
     "add_sensor_noise",
     "quantize",
+    "order_from_num_functions",
     "order_from_num_coefficients",
 ]
 
@@ -69,11 +71,11 @@ def view_direction(like: torch.Tensor) -> torch.Tensor:
     return torch.tensor(VIEW, dtype=like.dtype, device=like.device)
 
 
-def order_from_num_coefficients(k: int) -> int:
+def order_from_num_functions(k: int) -> int:
     """Order ``P`` with ``num_isotropic(P) == k``; ``ValueError`` if there is none.
 
     Example:
-        >>> order_from_num_coefficients(20)
+        >>> order_from_num_functions(20)
         3
     """
     for p in range(0, 41):
@@ -86,6 +88,10 @@ def order_from_num_coefficients(k: int) -> int:
         f"the last axis of the coefficient maps has {k} entries, which is not the size of an isotropic "
         "Helmholtz basis (1, 4, 10, 20, 35, 56, ... = (P+1)(P+2)(P+3)/6)"
     )
+
+
+#: Alias of :func:`order_from_num_functions` (the earlier name).
+order_from_num_coefficients = order_from_num_functions
 
 
 def _check_lights(lights: torch.Tensor, name: str = "lights") -> torch.Tensor:
@@ -199,7 +205,7 @@ def _check_coefficient_maps(normals: torch.Tensor, coefficients: torch.Tensor) -
             f"got {tuple(coefficients.shape)}"
         )
     check_same([("normals", normals), ("coefficients", coefficients)])
-    return order_from_num_coefficients(coefficients.shape[-1])
+    return order_from_num_functions(coefficients.shape[-1])
 
 
 def brdf_cosine(
@@ -334,7 +340,10 @@ def add_sensor_noise(
 
 
 def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> torch.Tensor:
-    """Clip to ``[0, max_value]`` and quantise to ``2**bits - 1`` levels (straight-through gradient).
+    """Clip to ``[0, max_value]`` and round to the ``2**bits`` codes ``0 .. 2**bits - 1`` (straight-through gradient).
+
+    Code ``k`` stands for ``k * max_value / (2**bits - 1)``; halfway values round
+    to the even code (``torch.round``).
 
     Args:
         images: any shape.
@@ -345,8 +354,10 @@ def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> to
         Quantised images in the same units as the input.
 
     Example:
-        >>> quantize(torch.tensor([0.6, 2.0]), bits=1)
-        tensor([1., 1.])
+        >>> quantize(torch.tensor([0.5, 2.0]), bits=1)  # 0.5 is halfway: even code 0; 2.0 saturates
+        tensor([0., 1.])
+        >>> quantize(torch.tensor([0.3, 0.7]), bits=2)  # codes 1 and 2 of 0..3
+        tensor([0.3333, 0.6667])
     """
     check_tensor(images, "images")
     if isinstance(bits, bool) or int(bits) != bits or not 1 <= bits <= 32:
@@ -359,6 +370,16 @@ def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> to
     return x + (q - x).detach()
 
 
+def _renamed(value: float, old_value: Optional[float], name: str, old: str) -> float:
+    """Resolve a renamed keyword: the old name still works, with a DeprecationWarning."""
+    if old_value is None:
+        return value
+    if value != 0.0:
+        raise TypeError(f"pass `{name}` only (`{old}` is its earlier name)")
+    warnings.warn(f"`{old}` is deprecated; use `{name}`", DeprecationWarning, stacklevel=3)
+    return old_value
+
+
 def render(
     normals: torch.Tensor,
     lights: torch.Tensor,
@@ -366,12 +387,15 @@ def render(
     intensities: Optional[torch.Tensor] = None,
     visibility: Optional[torch.Tensor] = None,
     view: Optional[torch.Tensor] = None,
-    read_noise: float = 0.0,
-    shot_noise: float = 0.0,
+    read_std: float = 0.0,
+    shot_gain: float = 0.0,
     seed: Optional[int] = None,
     saturation: Optional[float] = None,
     bits: Optional[int] = None,
     mask: Optional[torch.Tensor] = None,
+    *,
+    read_noise: Optional[float] = None,
+    shot_noise: Optional[float] = None,
 ) -> torch.Tensor:
     r"""Render photometric-stereo images (section 7 of the math notes).
 
@@ -385,9 +409,13 @@ def render(
         intensities: ``None`` (ones), ``(L,)`` or ``(L, C)`` light intensities.
         visibility: optional ``(L, *S)`` cast-shadow mask (bool or float in [0, 1]).
         view: optional direction toward the camera (default ``(0, 0, 1)``).
-        read_noise: std of additive Gaussian noise.
-        shot_noise: variance per unit signal of the shot noise.
+        read_std: std of the additive Gaussian read noise (as in
+            :func:`add_sensor_noise`).
+        shot_gain: variance per unit signal of the shot noise (as in
+            :func:`add_sensor_noise`).
         seed: noise seed (reproducible results).
+        read_noise, shot_noise: earlier names of ``read_std`` and
+            ``shot_gain`` (keyword only, deprecated).
         saturation: clip radiance at this level (also the full-scale value for
             quantisation); ``None``: no clipping (quantisation then uses the
             maximum of the rendered images as full scale).
@@ -402,7 +430,7 @@ def render(
     Example:
         >>> n = torch.nn.functional.normalize(torch.randn(5, 3).abs(), dim=-1)
         >>> a = torch.zeros(5, 3, 10); a[..., 0] = 1.0
-        >>> render(n, torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), a, read_noise=0.01, seed=0).shape
+        >>> render(n, torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), a, read_std=0.01, seed=0).shape
         torch.Size([2, 5, 3])
     """
     check_dirs(normals, "normals")
@@ -426,7 +454,9 @@ def render(
                 f"`visibility` must have shape (L, *S) = {(lights.shape[0], *S)}, got {tuple(visibility.shape)}"
             )
         img = img * visibility.to(img.dtype).unsqueeze(-1)
-    img = add_sensor_noise(img, read_noise, shot_noise, seed)
+    read_std = _renamed(read_std, read_noise, "read_std", "read_noise")
+    shot_gain = _renamed(shot_gain, shot_noise, "shot_gain", "shot_noise")
+    img = add_sensor_noise(img, read_std, shot_gain, seed)
     if saturation is not None:
         if not saturation > 0:
             raise ValueError(f"`saturation` must be > 0, got {saturation}")
