@@ -25,11 +25,13 @@ setup(
         "kornia>=0.7",
         "OpenEXR>=3.2",
         "scikit-image>=0.21",
+        "pyamg>=5.0",
     ],
     extras_require={
         "examples": ["matplotlib>=3.6", "tqdm>=4.60"],
-        "test": ["pytest>=7", "hypothesis>=6", "matplotlib>=3.6", "tqdm>=4.60"],
+        "test": ["pytest>=7", "hypothesis>=6", "matplotlib>=3.6", "tqdm>=4.60", "trimesh>=4.0"],
         "bench": ["e3nn>=0.5", "sphericart-torch>=0.5"],
+        "mesh": ["trimesh>=4.0"],
     },
     classifiers=[
         "Programming Language :: Python :: 3",
