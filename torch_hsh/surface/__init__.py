@@ -18,6 +18,8 @@ from .integrate import (  # noqa: F401
     integrate_normals,
     normals_to_slopes,
 )
+from .visibility import light_visibility  # noqa: F401
+from .export import MESH_EXTRA_HINT, depth_to_mesh, save_depth, save_mesh, shade_depth  # noqa: F401
 
 __all__ = [
     "INTEGRATION_METHODS",
@@ -25,4 +27,10 @@ __all__ = [
     "depth_to_normals",
     "integrate_normals",
     "normals_to_slopes",
+    "light_visibility",
+    "MESH_EXTRA_HINT",
+    "depth_to_mesh",
+    "save_depth",
+    "save_mesh",
+    "shade_depth",
 ]
