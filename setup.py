@@ -26,6 +26,7 @@ setup(
         "OpenEXR>=3.2",
         "scikit-image>=0.21",
         "pyamg>=5.0",
+        "threadpoolctl>=3.0",
     ],
     extras_require={
         "examples": ["matplotlib>=3.6", "tqdm>=4.60"],

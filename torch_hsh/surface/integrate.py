@@ -46,7 +46,8 @@ Solvers (``solver=``):
 
 * ``"scipy"`` (CPU): the sparse Laplacian (int64 indices) solved by conjugate
   gradients preconditioned with classical algebraic multigrid
-  (``pyamg.ruge_stuben_solver``);
+  (``pyamg.ruge_stuben_solver``); BLAS is limited to one thread during the
+  solve (``threadpoolctl``: vector-sized BLAS calls only lose from threading);
 * ``"torch"`` (any device, e.g. CUDA): matrix-free conjugate gradients on the
   ``(H, W)`` grid (the Laplacian is four shifted differences, no index
   arrays), preconditioned by the exact inverse of the Neumann Laplacian of
@@ -206,7 +207,7 @@ def depth_to_normals(depth: torch.Tensor, mask: Optional[torch.Tensor] = None) -
     Example:
         >>> z = torch.arange(5.0)[None, :].expand(4, 5) * 0.75  # rises to the right
         >>> depth_to_normals(z)[1, 2]
-        tensor([-0.6000, 0.0000, 0.8000])
+        tensor([-0.6000,  0.0000,  0.8000])
     """
     check_tensor(depth, "depth", allow_nonfinite=True)
     if depth.dim() != 2:
@@ -323,7 +324,16 @@ def _pyamg():
     return pyamg
 
 
-def _solve_scipy(edges: _Edges, m: torch.Tensor, anchors: torch.Tensor, z0, tol: float, max_iter: int):
+def _solve_scipy(edges: _Edges, m: torch.Tensor, anchors: torch.Tensor, z0, tol: float, max_iter: int, cache=None):
+    # The Krylov loops call BLAS on single vectors; multithreaded OpenBLAS turns each such call into
+    # a thread synchronisation (20x slower on a busy machine), so BLAS runs on one thread here.
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _solve_scipy_impl(edges, m, anchors, z0, tol, max_iter, cache)
+
+
+def _solve_scipy_impl(edges, m, anchors, z0, tol, max_iter, cache):
     import scipy.sparse as sp
 
     pyamg = _pyamg()
@@ -352,14 +362,31 @@ def _solve_scipy(edges: _Edges, m: torch.Tensor, anchors: torch.Tensor, z0, tol:
     bn = float(np.linalg.norm(b))
     if bn == 0:
         return torch.zeros(H, W, dtype=torch.float64, device=m.device), {"iterations": 0, "residual": 0.0}
-    ml = pyamg.ruge_stuben_solver(Lmat)
-    res = []
-    x = ml.solve(b, x0=x0, tol=tol, maxiter=max_iter, accel="cg", residuals=res)
+    if cache is not None and cache.get("ml") is not None:
+        # re-weighted system (bilateral): reuse the last AMG hierarchy as a preconditioner
+        import scipy.sparse.linalg as spla
+
+        count = [0]
+
+        def _cb(_):
+            count[0] += 1
+
+        x, _ = spla.cg(Lmat, b, x0=x0, rtol=tol, maxiter=max_iter, M=cache["ml"].aspreconditioner(), callback=_cb)
+        its = count[0]
+        if its > max(2 * cache["iterations"], 15):
+            cache["ml"] = None  # the weights drifted: rebuild next time
+    else:
+        ml = pyamg.ruge_stuben_solver(Lmat)
+        res = []
+        x = ml.solve(b, x0=x0, tol=tol, maxiter=max_iter, accel="cg", residuals=res)
+        its = max(len(res) - 1, 0)
+        if cache is not None:
+            cache.update(ml=ml, iterations=its)
     rel = float(np.linalg.norm(b - Lmat @ x) / bn)
     out = np.zeros(H * W)
     out[flat_pix] = x
     z = torch.from_numpy(out.reshape(H, W)).to(m.device)
-    return z, {"iterations": max(len(res) - 1, 0), "residual": rel}
+    return z, {"iterations": its, "residual": rel}
 
 
 # ---- torch: matrix-free PCG with a DCT preconditioner ---------------------- #
@@ -461,9 +488,9 @@ def _solve_torch(edges: _Edges, m: torch.Tensor, anchors: torch.Tensor, z0, tol:
     return out, {"iterations": it, "residual": rel}
 
 
-def _solve(edges, m, labels, n, anchors, z0, solver, tol, max_iter):
+def _solve(edges, m, labels, n, anchors, z0, solver, tol, max_iter, cache=None):
     if solver == "scipy":
-        z, info = _solve_scipy(edges, m, anchors, z0, tol, max_iter)
+        z, info = _solve_scipy(edges, m, anchors, z0, tol, max_iter, cache)
     else:
         z, info = _solve_torch(edges, m, anchors, z0, tol, max_iter)
     return _zero_mean(z, labels, n) * m, info
@@ -626,8 +653,9 @@ def _integrate_one(normals, m, method, solver, tol, max_iter, min_nz, fill, k, i
         wu, wv = half, half
         edges = _bilateral_edges(gc, gr, nz, m, wu, wv)
         energy = None
+        cache: Dict[str, object] = {}
         for outer in range(iterations):
-            z, si = _solve(edges, m, labels, n_parts, anchors, z if outer else None, solver, tol, max_iter)
+            z, si = _solve(edges, m, labels, n_parts, anchors, z if outer else None, solver, tol, max_iter, cache)
             info["iterations"].append(si["iterations"])
             info["residual"] = si["residual"]
             info["outer_iterations"] = outer + 1
