@@ -84,7 +84,10 @@ def plain_cg(n, m, tol):
     def cb(_):
         it[0] += 1
 
-    x, _ = spla.cg(L, b, rtol=tol, maxiter=100000, callback=cb)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):  # as in the library's scipy path
+        x, _ = spla.cg(L, b, rtol=tol, maxiter=100000, callback=cb)
     out = np.zeros(H * W)
     out[flat] = x
     return torch.from_numpy(out.reshape(H, W)), it[0], float(np.linalg.norm(b - L @ x) / np.linalg.norm(b))
