@@ -13,10 +13,11 @@ exact normals, on a disc of diameter 0.98 * size with two holes. For every size 
 * ``bilateral/scipy``: bilateral normal integration (sizes up to ``--bilateral-max``);
 * the **reference** measured in the same run: plain (unpreconditioned) conjugate gradients
   (``scipy.sparse.linalg.cg``) on the same Laplacian and tolerance, for sizes up to
-  ``--reference-max`` (it gets slow quickly); ratios are reference time / method time.
+  ``--reference-max`` (it gets slow quickly); ratios are reference time / method time (wall and CPU).
 
 Columns: unknowns, CG iterations, relative residual, RMS depth error against the analytic
-surface (pixels, after removing the mean), seconds (median of ``--repeats``).
+surface (pixels, after removing the mean), wall-clock and process CPU seconds (medians of
+``--repeats``; on a machine shared with other jobs the CPU time is the steadier figure).
 ``--perspective``: the cost of the orthographic assumption on a DiLiGenT-like perspective camera.
 ``--data``: also integrates the ground-truth normals of a DiLiGenT-layout folder over its mask.
 """
@@ -126,11 +127,14 @@ def perspective_cost(f=3765.0, Z0=1500.0, R=50.0, off=(120.0, 90.0), size=340):
 
 
 def timed(fn, repeats):
-    times, out = [], None
+    """Median wall time and median CPU time of this process (all threads) over ``repeats`` runs."""
+    times, cpus, out = [], [], None
     for _ in range(repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = fn()
         times.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
+    timed.cpu = statistics.median(cpus)
     return out, statistics.median(times)
 
 
@@ -149,14 +153,16 @@ def main():
     from torch_hsh.surface import integrate_normals
 
     print(f"torch {torch.__version__}, {args.threads} threads, tol {args.tol:g}")
-    print(f"{'size':>6s} {'method':18s} {'unknowns':>9s} {'iters':>7s} {'resid':>8s} {'rms px':>8s} {'time s':>7s} {'ref/this':>8s}")
+    print(f"{'size':>6s} {'method':22s} {'unknowns':>9s} {'iters':>7s} {'resid':>8s} {'rms px':>8s} {'wall s':>7s} "
+          f"{'cpu s':>7s} {'ref/wall':>8s} {'ref/cpu':>8s}")
     for size in args.sizes:
         z_true, n, m = problem(size)
         rows = []
-        ref_t = None
+        ref_t = ref_c = None
         if size <= args.reference_max:
             (zr, its, res), ref_t = timed(lambda: plain_cg(n, m, args.tol), 1)
-            rows.append(("plain CG (ref)", its, res, rms_error(zr, z_true, m), ref_t))
+            ref_c = timed.cpu
+            rows.append(("plain CG (ref)", its, res, rms_error(zr, z_true, m), ref_t, timed.cpu))
         for method, solver in (("poisson", "scipy"), ("poisson", "torch"), ("bilateral", "scipy")):
             if method == "bilateral" and size > args.bilateral_max:
                 continue
@@ -166,10 +172,10 @@ def main():
             )
             its = sum(info["iterations"])
             name = f"{method}/{solver}" + (f" ({info['outer_iterations']} rw)" if method == "bilateral" else "")
-            rows.append((name, its, info["residual"], rms_error(z, z_true, m), t))
-        for name, its, res, err, t in rows:
-            ratio = f"{ref_t / t:8.1f}" if ref_t else f"{'-':>8s}"
-            print(f"{size:>4d}^2 {name:18s} {int(m.sum()):9d} {its:7d} {res:8.1e} {err:8.4f} {t:7.2f} {ratio}")
+            rows.append((name, its, info["residual"], rms_error(z, z_true, m), t, timed.cpu))
+        for name, its, res, err, t, cpu in rows:
+            ratio = f"{ref_t / t:8.1f} {ref_c / max(cpu, 1e-9):8.1f}" if ref_t else f"{'-':>8s} {'-':>8s}"
+            print(f"{size:>4d}^2 {name:22s} {int(m.sum()):9d} {its:7d} {res:8.1e} {err:8.4f} {t:7.2f} {cpu:7.2f} {ratio}")
         if size == 1024:
             t = [r[4] for r in rows if r[0] == "poisson/scipy"][0]
             print(f"target: Poisson at 1024^2 under 10 s on {args.threads} threads at tol {args.tol:g}: "
