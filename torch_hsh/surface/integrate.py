@@ -438,7 +438,8 @@ def _solve_torch(edges: _Edges, m: torch.Tensor, anchors: torch.Tensor, z0, tol:
     r0, r1 = int(rows[0]), int(rows[-1]) + 1
     c0, c1 = int(cols[0]), int(cols[-1]) + 1
     # crop everything to the bounding box of the mask
-    e = _Edges(edges.wh[r0:r1, c0 : c1 - 1], edges.th[r0:r1, c0 : c1 - 1], edges.wv[r0 : r1 - 1, c0:c1], edges.tv[r0 : r1 - 1, c0:c1])
+    hs, vs = (slice(r0, r1), slice(c0, c1 - 1)), (slice(r0, r1 - 1), slice(c0, c1))
+    e = _Edges(edges.wh[hs], edges.th[hs], edges.wv[vs], edges.tv[vs])
     mb = m[r0:r1, c0:c1]
     mf = mb.to(torch.float64)
     anc = torch.zeros(H * W, dtype=torch.float64, device=m.device)
@@ -586,7 +587,7 @@ def integrate_normals(
     Returns:
         ``(H, W)`` (or ``(*B, H, W)``) depth in pixel units, dtype and device
         of ``normals``; ``fill`` outside the mask. With ``return_info``,
-        ``(depth, info)``.
+        ``(depth, info)``. Not differentiable (the normals are detached).
 
     Example:
         >>> from torch_hsh.scenes import sphere_normals
