@@ -41,14 +41,14 @@ def oblique_view(ax, depth, mask, stride=2, elev=20, azim=-65):
     ax.set_axis_off()
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/data/diligent_cat")
     ap.add_argument("--method", default="poisson", choices=["poisson", "bilateral"])
     ap.add_argument("--out", default=None, help="output folder for depth, mesh and shaded picture")
     ap.add_argument("--figure", default=None, help="write a three-panel PNG here")
     ap.add_argument("--overwrite", action="store_true")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     from torch_hsh.io.diligent import load_diligent
     from torch_hsh.surface import integrate_normals, save_depth, save_mesh, shade_depth
@@ -104,6 +104,7 @@ def main():
         fig_path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(fig_path, dpi=90)
         print("wrote", fig_path)
+    return depth
 
 
 if __name__ == "__main__":
