@@ -166,3 +166,25 @@ def test_bad_inputs():
         R.quantize(torch.ones(3), bits=0)
     with pytest.raises(ValueError, match="read_std"):
         R.add_sensor_noise(torch.ones(3), read_std=-1.0)
+
+
+def test_ambient_fraction_in_cast_shadows():
+    n = _normals(6)
+    l = torch.tensor([[0.0, 0.0, 1.0], [0.5, 0.2, 0.84], [0.0, 0.6, -0.8]], dtype=DT)
+    brdf = BlinnPhong(0.7, 0.3, 20.0)
+    vis = torch.ones(3, 6, dtype=torch.bool)
+    vis[0, :3] = False
+    vis[1, 4] = False
+    vis[2, :] = False
+    lit = R.render(n, l, brdf)
+    img0 = R.render(n, l, brdf, visibility=vis)
+    assert torch.equal(R.render(n, l, brdf, visibility=vis, ambient=0.0), img0)  # default unchanged
+    img = R.render(n, l, brdf, visibility=vis, ambient=0.2)
+    assert torch.equal(img[vis], lit[vis])  # lit observations untouched
+    assert torch.allclose(img[~vis], 0.2 * lit[~vis], rtol=1e-12)  # shadows keep 20 % of the light
+    assert bool((img[0, :3] > 0).all()) and bool((img[2] == 0).all())  # attached shadows stay black
+    soft = torch.full((3, 6), 0.5, dtype=DT)
+    assert torch.allclose(R.render(n, l, brdf, visibility=soft, ambient=0.2), 0.6 * lit)
+    assert torch.equal(R.render(n, l, brdf, ambient=0.5), lit)  # no visibility: nothing to fill
+    with pytest.raises(ValueError, match="ambient"):
+        R.render(n, l, brdf, visibility=vis, ambient=1.5)

@@ -9,7 +9,9 @@ intensity ``e_j``; each pixel has a unit normal ``n`` and its own BRDF ``f``:
     I_{jc} = e_{jc}\, f_c(l_j', v')\, \max(0, n \cdot l_j)\; V_j,
 
 where ``'`` marks the local frame of ``n`` and ``V_j`` is an optional
-visibility (cast-shadow) mask. Attached shadows (``n . l <= 0``) are always
+visibility (cast-shadow) mask; ``render(..., ambient=a)`` replaces it by
+``V_j + a (1 - V_j)`` so that cast shadows stay dim instead of black (a crude
+interreflection / room-light term, off by default). Attached shadows (``n . l <= 0``) are always
 applied; the isotropic basis itself is zero there too.
 
 A BRDF is either
@@ -393,6 +395,7 @@ def render(
     saturation: Optional[float] = None,
     bits: Optional[int] = None,
     mask: Optional[torch.Tensor] = None,
+    ambient: float = 0.0,
     *,
     read_noise: Optional[float] = None,
     shot_noise: Optional[float] = None,
@@ -421,6 +424,13 @@ def render(
             maximum of the rendered images as full scale).
         bits: quantise to this many bits (e.g. 16), after clipping.
         mask: optional ``(*S)`` bool; pixels outside are set to zero.
+        ambient: fraction in ``[0, 1]`` of the unoccluded radiance that still
+            reaches cast-shadowed observations (a crude stand-in for
+            interreflections and room light: a real cast shadow is dim, not
+            black). The visibility factor becomes ``V + ambient (1 - V)``,
+            applied before the noise; attached shadows (``n . l <= 0``) stay
+            zero. No effect without ``visibility``; ``0`` (default) leaves the
+            images unchanged.
 
     Returns:
         ``(L, *S, C)`` images. Negative radiance from a coefficient expansion is
@@ -446,6 +456,8 @@ def render(
             f"got {type(brdf).__name__}"
         )
     S = normals.shape[:-1]
+    if isinstance(ambient, bool) or not isinstance(ambient, (int, float)) or not 0 <= ambient <= 1:
+        raise ValueError(f"`ambient` must be a number in [0, 1], got {ambient!r}")
     if visibility is not None:
         if not isinstance(visibility, torch.Tensor):
             raise TypeError(f"`visibility` must be a torch.Tensor, got {type(visibility).__name__}")
@@ -453,7 +465,10 @@ def render(
             raise ValueError(
                 f"`visibility` must have shape (L, *S) = {(lights.shape[0], *S)}, got {tuple(visibility.shape)}"
             )
-        img = img * visibility.to(img.dtype).unsqueeze(-1)
+        vis = visibility.to(img.dtype)
+        if ambient:
+            vis = vis + ambient * (1 - vis)
+        img = img * vis.unsqueeze(-1)
     read_std = _renamed(read_std, read_noise, "read_std", "read_noise")
     shot_gain = _renamed(shot_gain, shot_noise, "shot_gain", "shot_noise")
     img = add_sensor_noise(img, read_std, shot_gain, seed)
