@@ -10,10 +10,8 @@ TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.torch_hsh_installed
 DOCS_STAMP := $(VENV)/.torch_hsh_docs_installed
 DEV_STAMP := $(VENV)/.torch_hsh_dev_installed
-# Docstring examples known to fail (owned elsewhere; remove when fixed): ps/lambertian.py prints
-# float noise (lambertian_ls) and a random -0. (robust_lambertian).
-DOCTEST_DESELECT ?= --deselect torch_hsh/ps/lambertian.py::torch_hsh.ps.lambertian.lambertian_ls \
-	--deselect torch_hsh/ps/lambertian.py::torch_hsh.ps.lambertian.robust_lambertian
+# Docstring examples to skip (none at present).
+DOCTEST_DESELECT ?=
 
 .PHONY: demo test test-fast test-lowest doctest docs lint bench env clean
 

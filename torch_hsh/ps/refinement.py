@@ -101,7 +101,7 @@ def refine_shared_chunk(B, y, w0, n, lights, order, scale, c, iters, irls, searc
         searched = it == 0 and len(search_angles) > 0 and search_azimuths > 0
         if searched:
             ni = cone_search(
-                ni, lambda m: reduced_cost(des(m), wi, yi, rd)[0], search_angles, search_azimuths,
+                ni, lambda m, wi=wi, yi=yi, rd=rd: reduced_cost(des(m), wi, yi, rd)[0], search_angles, search_azimuths,
                 base_cost=reduced_cost(Pi, wi, yi, rd)[0],
             )
         # the design at the current normals is known unless the search moved them
