@@ -358,3 +358,18 @@ def test_fit_merl_file(tmp_path, capsys):
     (tmp_path / "bad.binary").write_bytes(b"\x01\x02")
     code, err = _run(["fit", str(tmp_path / "bad.binary"), "--out", str(tmp_path / "d.npz"), "--quiet"], capsys)
     assert code == 1 and "bad.binary" in err and not (tmp_path / "d.npz").exists()
+
+
+def test_depth_mesh_and_result_file_from_a_real_solve(tmp_path):
+    pytest.importorskip("trimesh")
+    out = tmp_path / "surf"
+    cli.ps_main(["--out", str(out), "--size", "16", "--lights", "10", "--depth", "--mesh", "--quiet"])
+    names = set(_strict_json(out / cli.MANIFEST)["files"])
+    assert {"depth.npy", "depth.exr", "mesh.ply", "surface.png", "result.npz"} <= names
+    depth = np.load(out / "depth.npy")
+    res = ps.HSHResult.load(out / "result.npz")
+    mask = res.mask.numpy()
+    assert depth.shape == mask.shape and np.isfinite(depth[mask]).all() and np.isnan(depth[~mask]).all()
+    # a sphere: the centre is the highest point of the integrated surface
+    assert depth[mask].max() - depth[8, 8] < 0.2 * (depth[mask].max() - depth[mask].min())
+    assert _strict_json(out / "metrics.json")["surface"]["components"] == 1

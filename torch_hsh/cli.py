@@ -32,12 +32,17 @@ Written files: ``normals.npy`` (H, W, 3) float32 in the DiLiGenT frame (zero
 outside the mask), ``coefficients.exr`` (coefficient maps), ``metrics.json``,
 ``normal_map.png``, ``confidence.png`` (8-bit, when the solver reports a
 confidence map), ``error_map.png`` (with ground truth) and ``relighting.png``
-(input / relit / error; these two need matplotlib), ``manifest.json``.
+(input / relit / error; these two need matplotlib), ``result.npz`` (the whole
+:class:`~torch_hsh.ps.HSHResult`, see ``HSHResult.load``), ``manifest.json``;
+with ``--depth``: ``depth.npy``, ``depth.exr`` and ``surface.png`` (a shaded
+rendering of the integrated depth); with ``--mesh``: ``mesh.ply`` (or
+``mesh.obj``) and ``surface.png``.
 
 Example::
 
     torch-hsh ps --out results/ps_demo
     torch-hsh ps --data ../shared/data/bunny_specular --holdout 5 --out results/bunny
+    torch-hsh ps --data ../shared/data/diligent_cat --drop-first 0 --depth --mesh --out results/cat
     torch-hsh fit my_material.binary --order 6 --out my_material.npz
 """
 from __future__ import annotations
@@ -88,6 +93,13 @@ def _int_in(lo: Optional[int] = None, hi: Optional[int] = None, what: str = "int
         return value
 
     return parse
+
+
+def _materials_arg(text: str):
+    """``auto``, or an integer >= 0 (0: independent per-pixel BRDFs)."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    return _int_in(0)(text)
 
 
 def _parse_device(ap: argparse.ArgumentParser, spec: str) -> torch.device:
@@ -325,7 +337,7 @@ def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     if not folder.is_dir():
         ap.error(f"argument --data: {folder} is not a folder")
     try:
-        ds = load_diligent(folder, dtype=torch.float64, normalize_intensities=True,
+        ds = load_diligent(folder, dtype=torch.float32, normalize_intensities=True,
                            drop_first=args.drop_first, max_images=args.max_images)
     except ValueError as err:
         if "no images left" in str(err):
@@ -437,7 +449,7 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--out", default="results/ps_demo", help="output folder (default results/ps_demo)")
     p.add_argument("--order", type=_int_in(0, 12), default=None,
                    help="HSH order (default torch_hsh.ps.DEFAULT_ORDER)")
-    p.add_argument("--materials", type=_int_in(0), default=None,
+    p.add_argument("--materials", type=_materials_arg, default=None,
                    help="shared basis BRDFs of the HSH solver (default torch_hsh.ps.DEFAULT_MATERIALS; "
                         "0: independent BRDF per pixel)")
     p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or mps (default cpu)")
@@ -451,10 +463,46 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--threads", type=_int_in(1, 1024), default=2, help="CPU threads for torch (default 2)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing --out folder that is not a torch-hsh result (its files are deleted)")
+    p.add_argument("--depth", action="store_true",
+                   help="integrate the normals: write depth.npy and depth.exr (pixel units, orthographic) and surface.png")
+    p.add_argument("--mesh", nargs="?", const="ply", choices=("ply", "obj"), default=None,
+                   help="also write the surface as a mesh (mesh.ply, or mesh.obj with --mesh obj; needs torch-hsh[mesh])")
+    p.add_argument("--integrator", choices=("poisson", "bilateral"), default="poisson",
+                   help="normal integration for --depth / --mesh (default poisson)")
     p.add_argument("--figures", default=None, help="also copy the PNGs (prefixed ps_) into this folder")
     _add_common(p)
     p.set_defaults(handler=_run_ps, parser=p)
     return p
+
+
+def _supports_auto_materials() -> bool:
+    import inspect
+
+    from .ps import settings
+
+    return "auto" in inspect.getsource(settings)
+
+
+def _save_surface(stage, args, res, mask, metrics, say) -> None:
+    """depth.npy + depth.exr (``--depth``), mesh.ply / mesh.obj (``--mesh``) and surface.png from the normals."""
+    from .io.diligent import _write_png
+    from .surface import integrate_normals, save_depth, save_mesh, shade_depth
+
+    t = time.perf_counter()
+    n = res.normals.detach().cpu().double()
+    m = mask.cpu()
+    depth, info = integrate_normals(n, m, method=args.integrator, return_info=True)
+    metrics["surface"] = {"integrator": args.integrator, "components": info.get("components"),
+                          "runtime_s": time.perf_counter() - t}
+    if args.depth:
+        save_depth(stage.file("depth.npy"), depth, m)
+        save_depth(stage.file("depth.exr"), depth, m)
+    if args.mesh:
+        albedo = res.albedo.detach().cpu().double() if getattr(res, "albedo", None) is not None else None
+        save_mesh(stage.file(f"mesh.{args.mesh}"), depth, m, normals=n, albedo=albedo)
+    img = shade_depth(depth, m).cpu().numpy()
+    _write_png(stage.file("surface.png"), _to_png8(img))
+    say(f"surface: {args.integrator} integration in {metrics['surface']['runtime_s']:.2f} s")
 
 
 def _errors(n, gt, mask):
@@ -488,6 +536,13 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     torch.set_num_threads(args.threads)
     order = ps.DEFAULT_ORDER if args.order is None else args.order
     materials = ps.DEFAULT_MATERIALS if args.materials is None else (args.materials or None)
+    if args.mesh:
+        try:
+            import trimesh  # noqa: F401
+        except ImportError:
+            ap.error("argument --mesh: needs trimesh (pip install 'torch-hsh[mesh]')")
+    if materials == "auto" and not _supports_auto_materials():
+        ap.error("argument --materials: 'auto' needs a torch_hsh.ps that supports materials='auto'")
     data = _load_data(args, ap)
     L = int(data["images"].shape[0])
     if args.holdout and not 1 <= args.holdout <= L - 3:
@@ -547,6 +602,10 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
                 f"robust Lambertian {ho.lambertian_relative_rmse:.4f}")
 
         np.save(stage.file("normals.npy"), res.normals.detach().cpu().numpy().astype(np.float32))
+        if hasattr(res, "save"):
+            res.save(stage.file("result.npz"))
+        if args.depth or args.mesh:
+            _save_surface(stage, args, res, mask, metrics, say)
         write_coefficient_maps_exr(stage.file("coefficients.exr"), res.coefficients.detach().cpu().float())
         _dump_json(stage.file("metrics.json"), metrics)
         _save_pictures(stage, data, res, err_map, confidence, relit_idx=L // 2, say=say)
