@@ -94,6 +94,8 @@ def solve_hsh(
     seed: int = 0,
     progress: bool = False,
     valid: Optional[torch.Tensor] = None,
+    cast_shadows: int = 0,
+    shadow_bias: float = 0.25,
 ) -> HSHResult:
     r"""Photometric stereo with isotropic Helmholtz HSH BRDFs.
 
@@ -160,6 +162,12 @@ def solve_hsh(
             observation (for example one known to be in a cast shadow). Non-finite
             and negative observations are always excluded; an excluded
             observation never influences another pixel.
+        cast_shadows: rounds of the cast-shadow loop (default 0: off): integrate
+            the normals, march the lights over the depth, mark the occluded
+            observations invalid, solve again (see :mod:`torch_hsh.ps.shadows`;
+            needs ``(L, H, W, C)`` images).
+        shadow_bias: height in pixels an occluder must rise above a light ray
+            to cast a shadow in that loop (depth-noise margin).
 
     Real captures: the solver runs at unit brightness (the images are divided
     by a power of two near their median), so the normals do not depend on the
@@ -185,6 +193,16 @@ def solve_hsh(
         >>> res.normals.shape, res.coefficients.shape  # doctest: +SKIP
         (torch.Size([64, 64, 3]), torch.Size([64, 64, 3, 20]))
     """
+    if cast_shadows:
+        from .shadows import shadow_loop
+
+        kw = dict(intensities=intensities, order=order, materials=materials, ridge=ridge, search_angles=search_angles,
+                  search_azimuths=search_azimuths, max_iter=max_iter, robust=robust, robust_iters=robust_iters,
+                  calibration_pixels=calibration_pixels, calibration_rounds=calibration_rounds,
+                  calibration_starts=calibration_starts, dark_fraction=dark_fraction, noise_sigma=noise_sigma,
+                  saturation=saturation, nonneg=nonneg, chunk_size=chunk_size, dtype=dtype, work_dtype=work_dtype,
+                  seed=seed, progress=progress)
+        return shadow_loop(solve_hsh, images, lights, mask, valid, cast_shadows, shadow_bias, init, **kw)
     t_start = time.perf_counter()
     cfg = Settings.validated(
         order, materials, ridge, search_angles, search_azimuths, max_iter, robust, robust_iters, calibration_pixels,
