@@ -72,6 +72,8 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--max-pixels", type=int, default=None, help="random subset of the mask (quick runs)")
     ap.add_argument("--baseline", action="store_true", help="also run the baseline solver (6d85856 + linspace fix)")
+    ap.add_argument("--baseline-seeds", type=int, nargs="+", default=None,
+                    help="seeds of the baseline runs (default: the same as --seeds)")
     ap.add_argument("--json", default=None, help="write every record to this JSON file")
     args = ap.parse_args(argv)
     if args.drop_first < 0:
@@ -90,7 +92,8 @@ def main(argv=None):
         rec = {"lambertian": run_worker(["--data", obj, "--methods", "ls,trimmed", *common])}
         for label, tree in trees:
             runs = []
-            for s in args.seeds:
+            seeds = args.seeds if tree is ROOT or args.baseline_seeds is None else args.baseline_seeds
+            for s in seeds:
                 mat = args.materials if tree is ROOT else ("default" if args.materials == "auto" else args.materials)
                 r = run_worker(["--data", obj, "--methods", "hsh", "--seed", s, "--materials", mat, *common], tree)
                 runs.append(r)
