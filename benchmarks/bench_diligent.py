@@ -99,7 +99,7 @@ def main(argv=None):
                 runs.append(r)
                 m = r["methods"]["hsh"]
                 print(f"  {name} {label} seed {s}: mean {m['mean']:.2f} median {m['median']:.2f} "
-                      f"time {m['time_s']:.1f} s, peak RSS {r['peak_rss_mb']:.0f} MB", flush=True)
+                      f"time {m['time_s']:.1f} s (cpu {m.get('cpu_s', 0):.1f} s), peak RSS {r['peak_rss_mb']:.0f} MB", flush=True)
             rec[label] = runs
         records[name] = rec
         _print_object(name, rec, [t[0] for t in trees])
@@ -110,22 +110,23 @@ def main(argv=None):
 def _print_object(name, rec, labels):
     lam = rec["lambertian"]
     print(f"\n{name}: {lam['pixels']} pixels, {lam['lights']} lights")
-    print(f"  {'method':24s} {'mean':>7s} {'median':>7s} {'spread':>7s} {'time s':>7s}  {'MB':>6s}")
+    print(f"  {'method':24s} {'mean':>7s} {'median':>7s} {'spread':>7s} {'time s':>7s} {'cpu s':>7s}  {'MB':>6s}")
     for key, label in (("ls", "Lambertian LS"), ("trimmed", "trimmed LS")):
         m = lam["methods"][key]
-        print(f"  {label:24s} {m['mean']:7.2f} {m['median']:7.2f} {'':>7s} {m['time_s']:7.2f}")
+        print(f"  {label:24s} {m['mean']:7.2f} {m['median']:7.2f} {'':>7s} {m['time_s']:7.2f} {m.get('cpu_s', 0):7.2f}")
     for label in labels:
         runs = rec[label]
         means = [r["methods"]["hsh"]["mean"] for r in runs]
         med = statistics.mean(r["methods"]["hsh"]["median"] for r in runs)
         t = statistics.median(r["methods"]["hsh"]["time_s"] for r in runs)
+        cpu = statistics.median(r["methods"]["hsh"].get("cpu_s", 0.0) for r in runs)
         rss = max(r["peak_rss_mb"] for r in runs)
         spread = max(means) - min(means)
         extra = ""
         info = runs[0]["methods"]["hsh"]["info"]
         if "materials_chosen" in info:
             extra = f"  M = {', '.join(str(int(r['methods']['hsh']['info']['materials_chosen'])) for r in runs)}"
-        print(f"  {label:24s} {statistics.mean(means):7.2f} {med:7.2f} {spread:7.2f} {t:7.2f}  {rss:6.0f}{extra}")
+        print(f"  {label:24s} {statistics.mean(means):7.2f} {med:7.2f} {spread:7.2f} {t:7.2f} {cpu:7.2f}  {rss:6.0f}{extra}")
     for pub, vals in PUBLISHED.items():
         if name in vals:
             print(f"  {'published ' + pub:24s} {vals[name]:7.2f}")

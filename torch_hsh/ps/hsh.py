@@ -41,7 +41,7 @@ Memory is bounded by ``O(chunk_size * L * K)`` in stages 4 and 5.
 from __future__ import annotations
 
 import time
-from typing import Optional, Sequence
+from typing import Dict, Optional, Sequence
 
 import torch
 
@@ -235,15 +235,31 @@ class _StageClock:
 
     def __init__(self, t0: float):
         self.t = t0
-        self.laps = {}
+        self.laps: Dict[str, float] = {}
+        self.rss: Dict[str, Optional[float]] = {}
 
     def lap(self, name: str) -> None:
         now = time.perf_counter()
         self.laps[name] = now - self.t
         self.t = now
+        self.rss[name] = _peak_rss_mb()
 
     def info(self):
-        return {f"time_{k}_s": v for k, v in self.laps.items()}
+        out = {f"time_{k}_s": v for k, v in self.laps.items()}
+        out.update({f"peak_rss_after_{k}_mb": v for k, v in self.rss.items() if v is not None})
+        return out
+
+
+def _peak_rss_mb() -> Optional[float]:
+    """Peak resident set size of the process so far, MB (None where ``resource`` is unavailable)."""
+    try:
+        import resource
+        import sys
+
+        r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return r / (2**20 if sys.platform == "darwin" else 1024.0)
+    except (ImportError, OSError):
+        return None
 
 
 #: A pixel needs this many valid observations for the HSH model; with fewer it
@@ -263,8 +279,11 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     scale_c = cal.scale if cal is not None else float(fit.residual.median())
     conf = confidence(ref.weights, fit.residual, scale_c, cfg.order, cfg.cauchy_c)
     conf = torch.where(bad, torch.zeros_like(conf), conf)
+    # the observations are no longer needed: release the largest buffers before the output maps exist
+    obs.data.y = obs.data.y.new_empty(0)
+    obs.weights = obs.weights.new_empty(0)
     s = obs.scale  # the solver ran at unit brightness: coefficients are linear in the images
-    coefs = fit.coefficients * s
+    coefs = fit.coefficients.mul_(s)
     albedo = directional_albedo_view(coefs, normals[:, 2])
     info["lm_iterations"] = float(ref.iterations)
     info["chunks"] = float(ref.chunks)
