@@ -106,10 +106,13 @@ def perspective_cost(f=3765.0, Z0=1500.0, R=50.0, off=(120.0, 90.0), size=340):
 
     # pixel grid centred on the object's image, principal point `off` pixels away (DiLiGenT-like)
     r, c = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij")
-    u = c - size / 2 + off[0]; v = r - size / 2 + off[1]   # pixel offsets from the principal point
+    u = c - size / 2 + off[0]  # pixel offsets from the principal point
+    v = r - size / 2 + off[1]
     d = torch.stack([u / f, -v / f, -torch.ones_like(u)], -1)
     C = torch.tensor([off[0] * Z0 / f, -off[1] * Z0 / f, -Z0], dtype=torch.float64)
-    a = (d * d).sum(-1); b = -2 * (d * C).sum(-1); cc = (C * C).sum() - R * R
+    a = (d * d).sum(-1)
+    b = -2 * (d * C).sum(-1)
+    cc = (C * C).sum() - R * R
     disc = b * b - 4 * a * cc
     m = disc > 0
     t = (-b - torch.sqrt(disc.clamp(min=0))) / (2 * a)
@@ -118,7 +121,8 @@ def perspective_cost(f=3765.0, Z0=1500.0, R=50.0, off=(120.0, 90.0), size=340):
     m &= n[..., 2] > 0.2
     z_true = P[..., 2] * f / Z0
     z = integrate_normals(n, m)
-    e = (z - z_true)[m]; e = e - e.mean()
+    e = (z - z_true)[m]
+    e = e - e.mean()
     zt = z_true[m] - z_true[m].mean()
     # best scale
     s = float((z[m] - z[m].mean()) @ zt / (zt @ zt))
@@ -160,7 +164,7 @@ def main():
         rows = []
         ref_t = ref_c = None
         if size <= args.reference_max:
-            (zr, its, res), ref_t = timed(lambda: plain_cg(n, m, args.tol), 1)
+            (zr, its, res), ref_t = timed(lambda n=n, m=m: plain_cg(n, m, args.tol), 1)
             ref_c = timed.cpu
             rows.append(("plain CG (ref)", its, res, rms_error(zr, z_true, m), ref_t, timed.cpu))
         for method, solver in (("poisson", "scipy"), ("poisson", "torch"), ("bilateral", "scipy")):
@@ -168,7 +172,10 @@ def main():
                 continue
             reps = 1 if method == "bilateral" else args.repeats
             (z, info), t = timed(
-                lambda: integrate_normals(n, m, method, solver=solver, tol=args.tol, return_info=True), reps
+                lambda n=n, m=m, method=method, solver=solver: integrate_normals(
+                    n, m, method, solver=solver, tol=args.tol, return_info=True
+                ),
+                reps,
             )
             its = sum(info["iterations"])
             name = f"{method}/{solver}" + (f" ({info['outer_iterations']} rw)" if method == "bilateral" else "")
@@ -192,7 +199,7 @@ def main():
 
         d = load_diligent(args.data, dtype=torch.float64)
         for method in ("poisson", "bilateral"):
-            (z, info), t = timed(lambda: integrate_normals(d.normals_gt, d.mask, method, return_info=True), 1)
+            (z, info), t = timed(lambda method=method: integrate_normals(d.normals_gt, d.mask, method, return_info=True), 1)
             print(f"{args.data}: {method}: {int(d.mask.sum())} px, {info['components']} part(s), "
                   f"{sum(info['iterations'])} CG iterations, {t:.2f} s")
 

@@ -699,7 +699,7 @@ def test_independent_azimuthal_fourier_reduction():
     Fq = np.zeros((nz, nz, P + 1))  # int_0^2pi F A_q ddphi, A_q orthonormal on [0, 2 pi]
     Ez = np.zeros((nz, nz))
     for i in range(nz):
-        def g(dphi):
+        def g(dphi, i=i):
             wi = torch.tensor([[math.sqrt(1 - z[i] ** 2), 0.0, z[i]]], dtype=D).expand(nz, 3)
             so = np.sqrt(1 - z ** 2)
             wo = torch.tensor(np.stack([so * math.cos(dphi), so * math.sin(dphi), z], -1), dtype=D)

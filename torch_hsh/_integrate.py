@@ -128,7 +128,7 @@ def rule_sums(brdf, basis, order: int, n_theta: int, n_phi: int, reduced: bool, 
     D = basis.azimuthal_degree(P) if want_a else None
     phi = torch.arange(n_phi, dtype=dtype, device=device) * (_TWO_PI / n_phi)
     use_lp = D is not None and n_phi > 2 * D + 2
-    M = 2 * D + 2 if use_lp else n_phi
+    M = 2 * D + 2 if D is not None and use_lp else n_phi
     if reduced:
         return _reduced(brdf, basis, P, z, wz, phi, M, D, use_lp, want_a, want_E, budget_chunk)
     return _full(brdf, basis, P, z, wz, phi, M, D, use_lp, want_a, want_E, budget_chunk)

@@ -251,9 +251,15 @@ def _render_consts_host(N: int, P: int):
     for p, r, q in _iso_list(P):
         a, b = pq[(p, q)], pq[(r, q)]
         if p == r:
-            i1.append(a), j1.append(Lp + a), i2.append(Lp), j2.append(0)
+            i1.append(a)
+            j1.append(Lp + a)
+            i2.append(Lp)
+            j2.append(0)
         else:
-            i1.append(a), j1.append(b), i2.append(b), j2.append(a)
+            i1.append(a)
+            j1.append(b)
+            i2.append(b)
+            j2.append(a)
     K = len(i1)
     S1 = torch.zeros(K, Lp + 1, dtype=torch.float64)
     S2 = torch.zeros(K, Lp + 1, dtype=torch.float64)

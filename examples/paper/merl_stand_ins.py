@@ -28,7 +28,6 @@ On the real database: download the MERL ``.binary`` files into a folder and run
 """
 from __future__ import annotations
 
-import math
 import sys
 import time
 from pathlib import Path
@@ -101,7 +100,7 @@ def main(argv=None):
     compactness.main(cargs + (["--overwrite"] if args.overwrite else []))
     merl_rows = {}
     with open(args.tables / "compactness_merl.csv") as fh:
-        hdr = fh.readline().strip().split(",")
+        fh.readline()  # header
         for line in fh:
             v = line.strip().split(",")
             if v[1] == "helmholtz_isotropic":

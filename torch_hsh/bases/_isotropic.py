@@ -13,7 +13,7 @@ normalisation and horizon mask that every ``evaluate`` starts with, and
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Optional, Sequence
 
 import torch
 
@@ -41,7 +41,7 @@ def pair_frame(wi: torch.Tensor, wo: torch.Tensor, hemisphere: bool = True):
 
 
 def azimuth_table(cr: torch.Tensor, ci: torch.Tensor, valid: torch.Tensor, order: int, sines: bool,
-                  scale: torch.Tensor = None) -> torch.Tensor:
+                  scale: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``[Re (s c)^q, q = 0..P] (+ [Im (s c)^q, q = 1..P] if sines)``, zero where not ``valid``."""
     if scale is not None:
         cr, ci = cr * scale, ci * scale

@@ -41,7 +41,6 @@ from functools import lru_cache
 import torch
 
 from .._checks import check_order
-from ..basis import _const
 from ._base import Basis, register_basis
 from ._isotropic import azimuth_table, gather_rows, pair_frame
 

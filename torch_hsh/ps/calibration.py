@@ -188,6 +188,7 @@ class Calibration:
 
 def calibrate(obs: Observations, n_start: torch.Tensor, cfg: Settings) -> Calibration:
     """Stage 3: calibrate ``cfg.materials`` shared basis BRDFs; writes its diagnostics into ``obs.info``."""
+    assert cfg.materials is not None  # only the shared model calibrates
     d, w0, info = obs.data, obs.weights, obs.info
     dt = d.dtype
     wdt = dt if cfg.work_dtype is None else cfg.work_dtype

@@ -100,8 +100,10 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
                 # the robust weights served the normals; the coefficients fit every valid
                 # observation (shrunk toward the shared mix), which relights best
                 ch.set_ridge_scale(n, Phi)
+                assert ref.mixing is not None  # the shared model's refinement fills it
                 a = final_coefficients(ch, n, cfg.nonneg, prior=basis.T.unsqueeze(0) @ ref.mixing[sl], Phi=Phi)
             else:
+                assert ref.ridge_diag is not None  # the independent model's refinement fills it
                 ch.ridge_diag = ref.ridge_diag[sl]
                 a = final_coefficients(ch, n, cfg.nonneg, Phi=Phi)
             r = (ch.y - Phi @ a) * ch.sw.unsqueeze(-1)

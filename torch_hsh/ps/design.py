@@ -168,6 +168,7 @@ class MixedDesign:
                 for dd in range(dq - 2, -1, -1):
                     poly = torch.addcmul(Eq[:, dd : dd + 1], poly, t)
                 acc = poly * gs[q] if acc is None else torch.addcmul(acc, poly, gs[q])
+            assert acc is not None  # the q loop runs at least once (q = 0)
             outs.append(acc)
         return torch.stack(outs, dim=1)
 
@@ -209,10 +210,10 @@ def _design_factors(n: torch.Tensor, lights: torch.Tensor, order: int):
         for _ in range(2, order + 1):
             G.append(2.0 * a1 * G[-1] - r1 * G[-2])
     sq2 = math.sqrt(2.0)
-    G = torch.stack([G[0]] + [g * sq2 for g in G[1:]], dim=-1)  # (p, L, P+1)
+    Gq = torch.stack([G[0]] + [g * sq2 for g in G[1:]], dim=-1)  # (p, L, P+1)
     Ri = _polar_table_t(zi_c.reshape(-1), order).t().reshape(p, L, U)  # (p, L, U)
     qidx = torch.tensor(qcol, device=dev)
-    X = Ri * G.index_select(-1, qidx)
+    X = Ri * Gq.index_select(-1, qidx)
     Ro = _polar_table_t(zo_c, order).t()  # (p, U)
     vals = Ro[:, src] * torch.tensor(coef, dtype=dt, device=dev)  # (p, 2K)
     T = torch.zeros(p, U, K, dtype=dt, device=dev)

@@ -161,7 +161,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
     shared = basis is not None
     normals = torch.empty(P, 3, dtype=dt, device=dev)
     wfin = torch.empty(P, L, dtype=d.y.dtype, device=dev)  # storage dtype: weights need no float64
-    mixing = torch.empty(P, basis.shape[0], C, dtype=dt, device=dev) if shared else None
+    mixing = torch.empty(P, basis.shape[0], C, dtype=dt, device=dev) if basis is not None else None
     ridge_diag = None if shared else torch.empty(P, profile.shape[0], dtype=dt, device=dev)
     starts = list(range(0, P, cfg.chunk_size))
     it = starts
@@ -180,6 +180,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
                     _PIXEL_IRLS, cfg.search_angles, cfg.search_azimuths, wdt,
                 )
                 n = torch.nn.functional.normalize(n, dim=-1)
+                assert mixing is not None
                 mixing[sl] = Wt
             else:
                 n, ch, k = refine_independent_chunk(
@@ -187,6 +188,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
                     cfg.robust_iters, cfg.search_angles, cfg.search_azimuths, cfg.max_iter, obs.sigma_y,
                 )
                 w = ch.w
+                assert ridge_diag is not None
                 ridge_diag[sl] = ch.ridge_diag
             total_iters += k
             moved += int(((n_start[sl] - n).norm(dim=-1) > 1e-6).sum())

@@ -94,7 +94,7 @@ _SOLVERS = ("auto", "scipy", "torch")
 # --------------------------------------------------------------------------- #
 # input checks
 # --------------------------------------------------------------------------- #
-def _check_mask(mask, hw: Tuple[int, int], device, name: str = "mask") -> torch.Tensor:
+def _check_mask(mask, hw: Tuple[int, ...], device, name: str = "mask") -> torch.Tensor:
     if mask is None:
         return torch.ones(hw, dtype=torch.bool, device=device)
     if not isinstance(mask, torch.Tensor):
