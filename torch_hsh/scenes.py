@@ -657,14 +657,15 @@ def demo_scene(
     r"""The photometric-stereo demo scene: a bumpy sphere, two analytic materials, cast shadows, sensor noise.
 
     * **Geometry**: a hemisphere of radius ``0.9 min(H, W) / 2`` pixels
-      carrying 12 smooth Gaussian bumps and dents (widths 10-20 % of the
-      radius, slopes up to about 25 degrees), tapered to zero at the rim:
+      carrying 12 smooth Gaussian bumps and dents (widths ``sigma`` 10-20 %
+      of the radius, heights 0.6-1.2 ``sigma``, so a lone bump is at most
+      about 36 degrees steep), tapered to zero at the rim:
       ``z = sqrt(R^2 - r^2) + (1 - r^2/R^2) b(x, y)``, ``z = 0`` outside
       (heights in pixel units, DiLiGenT frame, see the module docstring).
       ``normals_gt`` are the exact normals of this height field (closed-form
       gradient), the normals used for shading; ``height`` is the same field
       sampled at the pixel centres, used for the cast shadows.
-    * **Materials**: four smooth regions (:func:`material_regions`)
+    * **Materials**: six smooth regions (:func:`material_regions`)
       alternating between GGX (:class:`~torch_hsh.brdf.CookTorranceGGX`,
       ``k_s = 0.4``, roughness 0.4, ``f0 = 0.3``) and Blinn–Phong
       (:class:`~torch_hsh.brdf.BlinnPhong`, ``k_s = 0.3``, shininess 30),
