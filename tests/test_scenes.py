@@ -12,6 +12,7 @@ from torch_hsh.scenes import (
     bumpy_heightfield,
     cast_shadow_mask,
     cone_lights,
+    demo_scene,
     diligent_like_lights,
     heightfield_normals,
     light_intensities,
@@ -332,3 +333,129 @@ def test_cast_shadow_bias():
     assert bool(cast_shadow_mask(hgt, light, bias=8.5).all())
     with pytest.raises(ValueError, match="bias"):
         cast_shadow_mask(hgt, light, bias=-1.0)
+
+
+# --------------------------------------------------------------------------- #
+# the demo scene
+# --------------------------------------------------------------------------- #
+_DEMO_KEYS = {"images", "lights", "intensities", "mask", "normals_gt", "labels", "name", "height", "albedo",
+              "visibility", "full_scale"}
+
+
+@pytest.fixture(scope="module")
+def demo32():
+    return demo_scene(32, seed=0, dtype=torch.float64)
+
+
+def test_demo_scene_shapes_and_dtypes(demo32):
+    s = demo32
+    assert set(s) == _DEMO_KEYS and isinstance(s["name"], str)
+    assert s["images"].shape == (96, 32, 32, 3) and s["images"].dtype == torch.float64
+    assert s["lights"].shape == (96, 3) and s["intensities"].shape == (96, 3)
+    assert s["mask"].shape == (32, 32) and s["mask"].dtype == torch.bool
+    assert s["normals_gt"].shape == (32, 32, 3) and s["height"].shape == (32, 32)
+    assert s["labels"].dtype == torch.int64 and s["visibility"].shape == (96, 32, 32)
+    assert torch.allclose(s["lights"].norm(dim=-1), torch.ones(96, dtype=torch.float64))
+    assert float(s["intensities"].min()) >= 0.8 and float(s["intensities"].max()) <= 1.2
+    m = s["mask"]
+    assert bool((s["images"][:, ~m] == 0).all()) and bool((s["normals_gt"][~m] == 0).all())
+    assert set(s["labels"][m].unique().tolist()) == {0, 1}  # both materials on the object
+    f = demo_scene(16, n_lights=5, seed=0)  # float32 by default
+    assert f["images"].dtype == torch.float32 and f["normals_gt"].dtype == torch.float32
+    assert f["images"].shape == (5, 16, 16, 3) and f["labels"].dtype == torch.int64
+    rect = demo_scene((12, 20), n_lights=4, seed=1)
+    assert rect["images"].shape == (4, 12, 20, 3) and bool(rect["mask"].any())
+
+
+def test_demo_scene_normals_match_height_field():
+    s = demo_scene(128, n_lights=3, seed=0, dtype=torch.float64)  # large enough for finite differences
+    n, m, hgt = s["normals_gt"], s["mask"], s["height"]
+    assert torch.allclose(n[m].norm(dim=-1), torch.ones(int(m.sum()), dtype=torch.float64), atol=1e-12)
+    assert bool((n[m][:, 2] > 0).all())
+    # independent finite differences: central differences of the sampled heights (x right, y up)
+    dz_dx = (hgt[1:-1, 2:] - hgt[1:-1, :-2]) / 2
+    dz_dy = -(hgt[2:, 1:-1] - hgt[:-2, 1:-1]) / 2
+    fd = torch.stack([-dz_dx, -dz_dy, torch.ones_like(dz_dx)], dim=-1)
+    fd = fd / fd.norm(dim=-1, keepdim=True)
+    # away from the rim (where the slope diverges) and with a margin of 2 pixels inside the mask
+    inner = m.clone()
+    for _ in range(2):
+        inner[1:-1, 1:-1] &= inner[:-2, 1:-1] & inner[2:, 1:-1] & inner[1:-1, :-2] & inner[1:-1, 2:]
+    inner &= n[..., 2] > 0.5
+    sel = inner[1:-1, 1:-1]
+    ang = torch.rad2deg(torch.acos((fd * n[1:-1, 1:-1]).sum(-1).clamp(-1, 1)))[sel]
+    assert int(sel.sum()) > 5000
+    assert float(ang.median()) < 0.3 and float(ang.max()) < 2.0
+    # a wrong sign on either axis would be tens of degrees off; the library's Sobel normals agree too
+    sob = heightfield_normals(hgt)
+    ang2 = torch.rad2deg(torch.acos((sob * n).sum(-1).clamp(-1, 1)))[inner]
+    assert float(ang2.quantile(0.95)) < 0.5
+    # the field is a bumpy sphere: not a plain hemisphere, but close to it on average
+    sph, _ = sphere_normals(128, radius=0.9, dtype=torch.float64)
+    dev = torch.rad2deg(torch.acos((sph * n).sum(-1).clamp(-1, 1)))[inner]
+    assert 3.0 < float(dev.mean()) < 25.0 and float(dev.max()) > 15.0
+
+
+def test_demo_scene_cast_shadows_and_noise(demo32):
+    clean = demo_scene(32, seed=0, dtype=torch.float64, read_noise=0.0, shot_noise=0.0)
+    s, m = demo32, demo32["mask"]
+    assert torch.equal(clean["visibility"], s["visibility"]) and torch.equal(clean["normals_gt"], s["normals_gt"])
+    ndl = torch.einsum("hwc,lc->lhw", s["normals_gt"], s["lights"])
+    cast = (~s["visibility"]) & (ndl > 0.1) & m  # facing the light, yet occluded by a bump
+    assert int(cast.sum()) > 0
+    assert bool((clean["images"][cast] == 0).all())  # exactly shadowed in the noise-free images
+    lit = s["visibility"] & (ndl > 0.1) & m
+    assert bool((clean["images"][lit] > 0).all())
+    # noise: read noise 1e-3 of full scale (values clipped at 0: E[max(0, e)^2] = sigma^2 / 2) ...
+    F_ = s["full_scale"]
+    dark = ((ndl <= 0) | ~s["visibility"]) & m
+    read = float((2 * (s["images"][dark] ** 2).mean()).sqrt()) / F_
+    assert 0.9e-3 < read < 1.1e-3
+    # ... plus shot noise of variance 1e-4 * F * I
+    bright = lit & (clean["images"].mean(-1) > 0.2 * F_)
+    d = (s["images"] - clean["images"])[bright]
+    z2 = d ** 2 / ((1e-3 * F_) ** 2 + 1e-4 * F_ * clean["images"][bright])
+    assert d.numel() > 1000 and 0.93 < float(z2.mean()) < 1.07
+
+
+def test_demo_scene_quantised_to_16_bits(demo32):
+    s = demo32
+    codes = s["images"] / s["full_scale"] * (2 ** 16 - 1)
+    assert float((codes - codes.round()).abs().max()) < 1e-6
+    assert float(s["images"].min()) >= 0 and float(s["images"].max()) <= s["full_scale"] * (1 + 1e-12)
+    assert len(s["images"].unique()) > 5000  # 16-bit, not a handful of levels
+    s8 = demo_scene(32, n_lights=8, seed=0, dtype=torch.float64, bits=8)
+    assert len(s8["images"].unique()) <= 256
+
+
+def test_demo_scene_seed_and_options(demo32):
+    a = demo_scene(24, n_lights=6, seed=3)
+    b = demo_scene(24, n_lights=6, seed=3)
+    for k in _DEMO_KEYS - {"name", "full_scale"}:
+        assert torch.equal(a[k], b[k]), k
+    c = demo_scene(24, n_lights=6, seed=4)
+    assert not torch.equal(a["images"], c["images"]) and not torch.equal(a["height"], c["height"])
+    # min_nz leaves the grazing rim out of the mask, nothing else changes
+    rim = demo_scene(32, seed=0, dtype=torch.float64, min_nz=0.3)
+    full = demo32["mask"]
+    assert bool((rim["mask"] <= full).all()) and int(rim["mask"].sum()) < int(full.sum())
+    assert bool((rim["normals_gt"][rim["mask"]][:, 2] > 0.3).all())
+    assert bool((demo32["normals_gt"][full & ~rim["mask"]][:, 2] <= 0.3).all())
+    assert torch.equal(rim["images"][:, rim["mask"]], demo32["images"][:, rim["mask"]])
+
+
+def test_demo_scene_errors():
+    with pytest.raises(ValueError, match="size"):
+        demo_scene(4)
+    with pytest.raises(ValueError, match="n_lights"):
+        demo_scene(16, n_lights=2)
+    with pytest.raises(TypeError, match="seed"):
+        demo_scene(16, seed=1.5)
+    with pytest.raises(TypeError, match="dtype"):
+        demo_scene(16, dtype=torch.int32)
+    with pytest.raises(ValueError, match="min_nz"):
+        demo_scene(16, min_nz=1.0)
+    with pytest.raises(ValueError, match="read_noise"):
+        demo_scene(16, read_noise=-1.0)
+    with pytest.raises(ValueError, match="bits"):
+        demo_scene(16, bits=40)

@@ -35,6 +35,7 @@ __all__ = [
     "cone_lights",
     "light_intensities",
     "cast_shadow_mask",
+    "demo_scene",
 ]
 
 #: ``skimage.data`` images shipped inside scikit-image (no download needed).
@@ -610,3 +611,164 @@ def cast_shadow_mask(
             occ |= sample > hgt + (k * rise + tol)
         vis[i] = ~occ
     return vis
+
+
+# --------------------------------------------------------------------------- #
+# the demo scene
+# --------------------------------------------------------------------------- #
+def _bumpy_sphere(h: int, w: int, radius: float, n_bumps: int, g: torch.Generator):
+    r"""Height (pixel units), analytic normals and the disc mask of a bumpy hemisphere (float64, CPU).
+
+    ``z = sqrt(R^2 - r^2) + (1 - r^2 / R^2) * b(x, y)`` inside the disc ``r < R``
+    and ``z = 0`` outside, with ``b`` a sum of Gaussian bumps and dents. The
+    taper ``1 - r^2 / R^2`` keeps ``z >= 0`` and continuous at the rim.
+    Normals come from the exact gradient (autograd of the closed form).
+    """
+    R = radius * min(h, w) / 2.0
+    u = torch.rand(n_bumps, 5, generator=g, dtype=torch.float64)
+    rad = 0.8 * R * torch.sqrt(u[:, 0])  # centres uniform over the disc of radius 0.8 R
+    ang = 2 * math.pi * u[:, 1]
+    cx, cy = rad * torch.cos(ang), rad * torch.sin(ang)
+    sigma = R * (0.10 + 0.10 * u[:, 2])
+    amp = sigma * (0.6 + 0.6 * u[:, 3]) * torch.where(u[:, 4] < 0.5, -1.0, 1.0).to(torch.float64)
+    rows, cols = _pixel_grid(h, w, torch.float64, "cpu")
+    x = (cols + 0.5 - w / 2.0).clone().requires_grad_(True)
+    y = (-(rows + 0.5 - h / 2.0)).clone().requires_grad_(True)
+    with torch.enable_grad():
+        r2 = x * x + y * y
+        mask = (r2 < R * R).detach()
+        inside = torch.where(mask, R * R - r2, torch.ones_like(r2))  # keeps sqrt's gradient finite outside
+        b = torch.zeros_like(x)
+        for k in range(n_bumps):
+            b = b + amp[k] * torch.exp(-0.5 * ((x - cx[k]) ** 2 + (y - cy[k]) ** 2) / sigma[k] ** 2)
+        z = torch.sqrt(inside) + (1.0 - r2 / (R * R)) * b
+        z = torch.where(mask, z, torch.zeros_like(z))
+        gx, gy = torch.autograd.grad(z.sum(), (x, y))
+    n = torch.stack([-gx, -gy, torch.ones_like(gx)], dim=-1)
+    n = F.normalize(n, dim=-1) * mask[..., None]
+    return z.detach(), n, mask
+
+
+def demo_scene(
+    size=128,
+    n_lights: int = 96,
+    seed: int = 0,
+    dtype=torch.float32,
+    device=None,
+    min_nz: float = 0.0,
+    read_noise: float = 1e-3,
+    shot_noise: float = 1e-4,
+    bits: int = 16,
+) -> dict:
+    r"""The photometric-stereo demo scene: a bumpy sphere, two analytic materials, cast shadows, sensor noise.
+
+    * **Geometry**: a hemisphere of radius ``0.9 min(H, W) / 2`` pixels
+      carrying 12 smooth Gaussian bumps and dents (widths ``sigma`` 10-20 %
+      of the radius, heights 0.6-1.2 ``sigma``, so a lone bump is at most
+      about 36 degrees steep), tapered to zero at the rim:
+      ``z = sqrt(R^2 - r^2) + (1 - r^2/R^2) b(x, y)``, ``z = 0`` outside
+      (heights in pixel units, DiLiGenT frame, see the module docstring).
+      ``normals_gt`` are the exact normals of this height field (closed-form
+      gradient), the normals used for shading; ``height`` is the same field
+      sampled at the pixel centres, used for the cast shadows.
+    * **Materials**: six smooth regions (:func:`material_regions`)
+      alternating between GGX (:class:`~torch_hsh.brdf.CookTorranceGGX`,
+      ``k_s = 0.4``, roughness 0.4, ``f0 = 0.3``) and Blinn–Phong
+      (:class:`~torch_hsh.brdf.BlinnPhong`, ``k_s = 0.3``, shininess 30),
+      both with white specular reflection over the diffuse albedo
+      ``0.15 + 0.7 * texture`` (:func:`albedo_texture`, linear RGB).
+    * **Lights**: ``n_lights`` jittered DiLiGenT-like directions
+      (:func:`diligent_like_lights`, up to 55 degrees from the view) with RGB
+      intensities in ``[0.8, 1.2]`` (:func:`light_intensities`).
+    * **Image formation** (:func:`torch_hsh.render.render_model`): attached
+      shadows, cast shadows (:func:`cast_shadow_mask` on ``height``); then,
+      with full scale ``F = 1.05 x`` the brightest noise-free value in the
+      mask: Gaussian read noise of std ``read_noise * F``, shot noise of
+      variance ``shot_noise * F * I`` (:func:`torch_hsh.render.add_sensor_noise`;
+      ``1 / shot_noise`` photo-electrons at full scale), clipping to
+      ``[0, F]`` and quantisation to ``bits`` bits
+      (:func:`torch_hsh.render.quantize`). Images are zero outside the mask.
+
+    All randomness comes from ``seed``: the same seed gives the same scene.
+    Computed in float64 on the CPU, returned in ``dtype`` on ``device``.
+
+    Args:
+        size: ``H`` or ``(H, W)`` (at least 8 x 8).
+        n_lights: number of lights (>= 3).
+        seed: int.
+        dtype: ``torch.float32`` or ``torch.float64``.
+        device: output device.
+        min_nz: the mask keeps the pixels inside the sphere's disc whose
+            true normal has ``n_z > min_nz`` (in ``[0, 1)``; 0 keeps the whole
+            disc, grazing rim included).
+        read_noise: read-noise std relative to full scale (>= 0).
+        shot_noise: shot-noise variance per unit signal, relative to full scale (>= 0).
+        bits: quantisation depth, 1..32.
+
+    Returns:
+        dict with ``images (L, H, W, 3)``, ``lights (L, 3)``,
+        ``intensities (L, 3)``, ``mask (H, W)`` bool, ``normals_gt (H, W, 3)``
+        (unit inside the mask, zero outside), ``labels (H, W)`` int64 (0 GGX,
+        1 Blinn–Phong), ``name`` (str), and for inspection ``height (H, W)``,
+        ``albedo (H, W, 3)``, ``visibility (L, H, W)`` bool (cast shadows;
+        True = lit) and ``full_scale`` (float, the value of the top code).
+
+    Example:
+        >>> s = demo_scene(32, n_lights=12, seed=0)
+        >>> s["images"].shape, s["lights"].shape, s["normals_gt"].shape
+        (torch.Size([12, 32, 32, 3]), torch.Size([12, 3]), torch.Size([32, 32, 3]))
+        >>> bool((~s["visibility"][:, s["mask"]]).any())  # some observations are cast-shadowed
+        True
+    """
+    from .brdf import BlinnPhong, CookTorranceGGX
+    from .render import add_sensor_noise, quantize, render_model
+
+    h, w = _size(size)
+    if min(h, w) < 8:
+        raise ValueError(f"`size` must be at least 8 x 8, got {(h, w)}")
+    n_lights = _count(n_lights, "n_lights", minimum=3)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise TypeError(f"`seed` must be an int, got {seed!r}")
+    dtype = _dtype(dtype)
+    if isinstance(min_nz, bool) or not isinstance(min_nz, (int, float)) or not 0 <= min_nz < 1:
+        raise ValueError(f"`min_nz` must be a number in [0, 1), got {min_nz!r}")
+    for name, val in (("read_noise", read_noise), ("shot_noise", shot_noise)):
+        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val) or val < 0:
+            raise ValueError(f"`{name}` must be a finite number >= 0, got {val!r}")
+    bits = _count(bits, "bits")
+    if bits > 32:
+        raise ValueError(f"`bits` must be in [1, 32], got {bits}")
+
+    f64 = torch.float64
+    g = _gen(seed)
+    height, normals, disc = _bumpy_sphere(h, w, 0.9, 12, g)
+    mask = disc & (normals[..., 2] > min_nz)
+    labels = material_regions((h, w), n_regions=6, seed=g) % 2
+    albedo = 0.15 + 0.7 * albedo_texture((h, w), seed=g, dtype=f64)
+    lights = diligent_like_lights(n_lights, seed=g, dtype=f64)
+    inten = light_intensities(n_lights, seed=g, dtype=f64)
+    noise_seed = int(torch.randint(0, 2 ** 31 - 1, (1,), generator=g))
+
+    ones = torch.ones(h, w, 1, dtype=f64)
+    safe_n = torch.where(disc[..., None], normals, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
+    ggx = CookTorranceGGX(albedo=albedo, specular=0.4 * ones, roughness=0.4 * ones, f0=0.3)
+    phong = BlinnPhong(kd=albedo, ks=0.3 * ones, shininess=30.0 * ones)
+    img = torch.where(
+        (labels == 0)[None, ..., None],
+        render_model(safe_n, lights, ggx, intensities=inten),
+        render_model(safe_n, lights, phong, intensities=inten),
+    )
+    vis = cast_shadow_mask(height, lights)
+    img = img * vis[..., None].to(f64) * mask[None, ..., None].to(f64)
+    full = 1.05 * float(img.max()) if bool(mask.any()) else 1.0
+    img = add_sensor_noise(img, read_std=read_noise * full, shot_gain=shot_noise * full, seed=noise_seed)
+    img = quantize(img, bits, full) * mask[None, ..., None].to(f64)
+
+    out = dict(
+        images=img, lights=lights, intensities=inten, mask=mask, normals_gt=normals * mask[..., None],
+        labels=labels, height=height, albedo=albedo, visibility=vis,
+    )
+    out = {k: (v.to(device=device, dtype=dtype) if v.is_floating_point() else v.to(device)) for k, v in out.items()}
+    out["full_scale"] = full
+    out["name"] = f"demo: bumpy sphere {h}x{w}, GGX / Blinn-Phong, {n_lights} lights, cast shadows, noise, {bits} bit"
+    return out
