@@ -26,7 +26,7 @@ try:
     FIGURES = ("error_map.png", "relighting.png")
 except ImportError:  # pragma: no cover - the lowest-versions check installs it, a bare install may not
     FIGURES = ()
-FAST = ["--size", "12", "--lights", "8", "--quiet"]
+FAST = ["--scene", "small", "--size", "12", "--lights", "8", "--quiet"]
 
 
 def _strict_json(path):
@@ -363,7 +363,7 @@ def test_fit_merl_file(tmp_path, capsys):
 def test_depth_mesh_and_result_file_from_a_real_solve(tmp_path):
     pytest.importorskip("trimesh")
     out = tmp_path / "surf"
-    cli.ps_main(["--out", str(out), "--size", "16", "--lights", "10", "--depth", "--mesh", "--quiet"])
+    cli.ps_main(["--out", str(out), "--scene", "small", "--size", "16", "--lights", "10", "--depth", "--mesh", "--quiet"])
     names = set(_strict_json(out / cli.MANIFEST)["files"])
     assert {"depth.npy", "depth.exr", "mesh.ply", "surface.png", "result.npz"} <= names
     depth = np.load(out / "depth.npy")
@@ -373,3 +373,11 @@ def test_depth_mesh_and_result_file_from_a_real_solve(tmp_path):
     # a sphere: the centre is the highest point of the integrated surface
     assert depth[mask].max() - depth[8, 8] < 0.2 * (depth[mask].max() - depth[mask].min())
     assert _strict_json(out / "metrics.json")["surface"]["components"] == 1
+
+
+def test_default_scene_is_the_demo_scene(tmp_path, fake_solver):
+    out = tmp_path / "demo"
+    cli.ps_main(["--out", str(out), "--size", "24", "--lights", "12", "--quiet"])
+    m = _strict_json(out / "metrics.json")
+    assert "bumpy" in m["data"].lower() or "demo" in m["data"].lower()
+    assert m["lights"] == 12

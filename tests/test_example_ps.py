@@ -21,7 +21,7 @@ def _load_example():
 def test_demo_output_contract(tmp_path, materials):
     mod = _load_example()
     out = tmp_path / "out"
-    metrics = mod.main(["--out", str(out), "--size", "28", "--lights", "24", "--materials", materials])
+    metrics = mod.main(["--out", str(out), "--scene", "small", "--size", "28", "--lights", "24", "--materials", materials])
     for name in ("normals.npy", "coefficients.exr", "metrics.json", "normal_map.png", "error_map.png", "relighting.png"):
         assert (out / name).is_file(), name
     m = json.loads((out / "metrics.json").read_text())
@@ -42,5 +42,5 @@ def test_demo_refuses_foreign_output_folder(tmp_path):
     out.mkdir()
     (out / "thesis.tex").write_text("do not touch")
     with pytest.raises(SystemExit):
-        mod.main(["--out", str(out), "--size", "16", "--lights", "12"])
+        mod.main(["--out", str(out), "--scene", "small", "--size", "16", "--lights", "12"])
     assert (out / "thesis.tex").read_text() == "do not touch"

@@ -320,13 +320,23 @@ def synthetic_scene(size: int = 48, n_lights: int = 40, seed: int = 0, dtype=tor
 def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     if args.data is None:
         d: Dict[str, Any]
+        demo = args.scene == "demo"
+        if args.size is None:
+            args.size = 128 if demo else 48
+        if args.lights is None:
+            args.lights = 96 if demo else 40
         if args.drop_first >= args.lights:
             ap.error(f"argument --drop-first: {args.drop_first} leaves no image of the {args.lights} synthetic lights")
         left = args.lights - args.drop_first if args.max_images is None else min(
             args.max_images, args.lights - args.drop_first)
         if left < 3:
             ap.error(f"argument --drop-first/--max-images: {left} synthetic image(s) left; at least 3 are needed")
-        d = synthetic_scene(args.size, args.lights, args.seed)
+        if demo:
+            from .scenes import demo_scene
+
+            d = demo_scene(args.size, n_lights=args.lights, seed=args.seed, dtype=torch.float32)
+        else:
+            d = synthetic_scene(args.size, args.lights, args.seed)
         stop = None if args.max_images is None else args.drop_first + args.max_images
         sel = slice(args.drop_first, stop)
         d.update(images=d["images"][sel], lights=d["lights"][sel], intensities=d["intensities"][sel])
@@ -457,8 +467,12 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
                    help="0 (off) or 1..L-3: also fit on all but N lights and report the relighting error")
     p.add_argument("--drop-first", type=_int_in(0), default=0, help="skip the first N images (e.g. 20 for bearPNG)")
     p.add_argument("--max-images", type=_int_in(3), default=None, help="use at most N images (N >= 3)")
-    p.add_argument("--size", type=_int_in(8, 4096), default=48, help="synthetic image size")
-    p.add_argument("--lights", type=_int_in(3, 10000), default=40, help="synthetic number of lights")
+    p.add_argument("--scene", choices=("demo", "small"), default="demo",
+                   help="synthetic scene without --data: demo (default; a 128x128 bumpy sphere, GGX / Blinn-Phong "
+                        "over a texture, cast shadows, 96 lights, noise, 16 bit: torch_hsh.scenes.demo_scene) or small "
+                        "(a 48x48 sphere with three materials and 40 lights)")
+    p.add_argument("--size", type=_int_in(8, 4096), default=None, help="synthetic image size (demo 128, small 48)")
+    p.add_argument("--lights", type=_int_in(3, 10000), default=None, help="synthetic number of lights (demo 96, small 40)")
     p.add_argument("--seed", type=_int_in(0), default=0)
     p.add_argument("--threads", type=_int_in(1, 1024), default=2, help="CPU threads for torch (default 2)")
     p.add_argument("--overwrite", action="store_true",
