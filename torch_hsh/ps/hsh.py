@@ -40,8 +40,9 @@ Memory is bounded by ``O(chunk_size * L * K)`` in stages 4 and 5.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 import torch
 
@@ -51,9 +52,10 @@ from .coefficients import fit_coefficients
 from .initialisation import initial_normals
 from .lambertian import _solve_flat
 from .observations import observation_weights, observe
+from .materials import select_materials
 from .refinement import refine
 from .result import HoldoutResult, HSHResult, directional_albedo_view, holdout_evaluation
-from .settings import DEFAULT_MATERIALS, DEFAULT_ORDER, Settings
+from .settings import AUTO, DEFAULT_MATERIALS, DEFAULT_ORDER, Settings
 
 __all__ = [
     "HSHResult",
@@ -73,7 +75,7 @@ def solve_hsh(
     intensities: Optional[torch.Tensor] = None,
     mask: Optional[torch.Tensor] = None,
     order: int = DEFAULT_ORDER,
-    materials: Optional[int] = DEFAULT_MATERIALS,
+    materials: Union[int, str, None] = DEFAULT_MATERIALS,
     init: Optional[torch.Tensor] = None,
     ridge: float = 0.1,
     search_angles: Sequence[float] = (8.0, 16.0),
@@ -197,6 +199,11 @@ def solve_hsh(
     n_start = n_init
     clock.lap("initialisation")
     cal = None
+    if cfg.materials == AUTO:
+        sel = select_materials(obs, n_start, cfg)  # 3a
+        obs.info.update(sel.info())
+        cfg = dataclasses.replace(cfg, materials=sel.chosen)
+        clock.lap("materials")
     if cfg.materials is not None:
         cal = calibrate(obs, n_start, cfg)  # 3
         n_start = cal.start_normals(n_start)
