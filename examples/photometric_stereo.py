@@ -145,14 +145,19 @@ def save_figures(out: Path, data, res, err_map, relit_idx: int, figures_dir=None
             shutil.copyfile(out / f, figures_dir / f"ps_{f}")
 
 
+def materials_arg(s: str):
+    """``--materials``: ``auto`` or an integer."""
+    return s if s == "auto" else int(s)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=None, help="DiLiGenT-layout object folder (default: synthetic scene)")
     ap.add_argument("--out", default="results/ps_demo", help="output folder (default results/ps_demo)")
     ap.add_argument("--order", type=int, default=None, help="HSH order (default torch_hsh.ps.DEFAULT_ORDER)")
-    ap.add_argument("--materials", type=int, default=None,
+    ap.add_argument("--materials", type=materials_arg, default=None,
                     help="shared basis BRDFs of the HSH solver (default torch_hsh.ps.DEFAULT_MATERIALS; "
-                         "0: independent BRDF per pixel)")
+                         "0: independent BRDF per pixel; auto: chosen in 1..4 from the data)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--holdout", type=int, default=0, help="also fit on all but N lights and report relighting error")
     ap.add_argument("--size", type=int, default=48, help="synthetic image size")
@@ -168,7 +173,7 @@ def main(argv=None):
     from torch_hsh.io.exr import write_coefficient_maps_exr
 
     order = ps.DEFAULT_ORDER if args.order is None else args.order
-    if args.materials is not None and args.materials < 0:
+    if isinstance(args.materials, int) and args.materials < 0:
         ap.error(f"--materials must be >= 0, got {args.materials}")
     materials = ps.DEFAULT_MATERIALS if args.materials is None else (args.materials or None)
     out = Path(args.out)
@@ -208,6 +213,7 @@ def main(argv=None):
         "method": "hsh",
         "order": order,
         "materials": materials,
+        "materials_chosen": res.info.get("materials"),
         "pixels": P,
         "lights": L,
         "runtime_s": t_hsh,
