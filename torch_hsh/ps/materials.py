@@ -54,7 +54,10 @@ represents each material well (an exactly Lambertian texture gives 1).
 With lobes that the order truncates, or normals that the short calibration
 leaves biased, more basis BRDFs predict better although there is one physical
 material (a Blinn-Phong material of shininess 8 with a textured albedo picks
-4), and a better prediction is not always a better normal.
+4), and a better prediction is not always a better normal: the single-view
+elevation ambiguity is invisible to held-out lights. On the bunny the
+criterion is nearly flat in ``M`` and the choice follows the subset seed
+(docs/photometric_stereo.md), which is why ``"auto"`` is not the default.
 """
 from __future__ import annotations
 
@@ -212,7 +215,7 @@ def select_materials(obs: Observations, n_start: torch.Tensor, cfg: Settings,
     lights = d.lights.to(wdt)
     nS = n_start[S].to(wdt)
     fold = light_folds(d.lights, _SELECT_FOLDS)
-    rounds = min(cfg.calibration_rounds, _SELECT_ROUNDS)
+    rounds = max(1, min(cfg.calibration_rounds, _SELECT_ROUNDS))
     _, alb = _solve_flat(yS, lights, trimmed_weights(yS, 0.25, 0.10))
     res_all, scales = [], []
     yT = yS.transpose(1, 2).contiguous()
