@@ -104,7 +104,8 @@ def main(argv=None):
     cases = [(p, None) for p in args.data] or [(s, None) for s in args.scenes.split(",")]
     ratios = []
     print(f"{'scene':12s} {'seed':>4s} {'auto M':>6s}  criterion M=1..4 (held-out Cauchy loss / obs)  "
-          f"{'cpu auto':>8s} {'cpu M=2':>7s} {'ratio':>5s} {'select':>6s}" + ("  err M=1..4 / auto (deg)" if args.fixed else ""))
+          f"{'cpu auto':>8s} {'cpu M=2':>7s} {'ratio':>5s} {'select':>6s}"
+          + ("  err M=1..4 / auto (deg)" if args.fixed else ""))
     for name, _ in cases:
         errs_auto, errs_fixed = [], []
         for seed in range(args.seeds):

@@ -28,7 +28,7 @@ stage  module                      returns             what it does
 =====  ==========================  ==================  =====================================
 1      :mod:`.observations`        ``Observations``    flatten, normalise, noise / saturation / shadow weights
 2      :mod:`.initialisation`      ``(P, 3)`` normals  robust Lambertian start
-3a     :mod:`.materials`           ``M``, criterion    ``materials="auto"`` only: ``M`` by held-out-light cross-validation
+3a     :mod:`.materials`           ``M``, criterion    ``materials="auto"``: ``M`` by held-out-light cross-validation
 3      :mod:`.calibration`         ``Calibration``     shared basis BRDFs on a pixel subset (shared model)
 4      :mod:`.refinement`          ``Refinement``      per-pixel normals (and mixing weights), in chunks
 5      :mod:`.coefficients`        ``Coefficients``    final coefficients, non-negativity safeguard

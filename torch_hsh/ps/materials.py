@@ -167,8 +167,8 @@ def one_standard_error_choice(totals: torch.Tensor, count: float) -> Tuple[int, 
     return chosen, [float(v) for v in crit], [float(v) for v in se]
 
 
-def _fold_residuals(yS, w0S, w_start, Phi, W, lights, order, held, scale, c, passes):
-    """Refit ``B`` and the mixing weights on the lights not in ``held`` at fixed normals; residuals ``(p, L)`` of every light.
+def _fold_residuals(yS, w0S, w_start, Phi, W, order, held, scale, c, passes):
+    """Refit ``B`` and the mixing weights without the lights ``held`` at fixed normals; residuals ``(p, L)``.
 
     ``Phi (p, L, K)`` design at the normals, ``W (p, C, M)`` start mixing weights,
     ``w_start (p, L)`` start robust weights (those of the fit on every light).
@@ -206,8 +206,8 @@ def select_materials(obs: Observations, n_start: torch.Tensor, cfg: Settings,
     if L < _MIN_LIGHTS:
         raise ValueError(f"`materials='auto'` needs at least {_MIN_LIGHTS} lights to hold some out, got {L}; "
                          "pass an integer `materials`")
-    dt, dev = d.dtype, d.y.device
-    wdt = dt if cfg.work_dtype is None else cfg.work_dtype
+    dev = d.y.device
+    wdt = d.dtype if cfg.work_dtype is None else cfg.work_dtype
     # the same seeded permutation as the calibration subset: its first pixels
     usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
     if usable.numel() == 0:
@@ -241,7 +241,7 @@ def select_materials(obs: Observations, n_start: torch.Tensor, cfg: Settings,
                 held = (fold == f).nonzero().squeeze(1)
                 if held.numel() == 0:
                     continue
-                r = _fold_residuals(yS, w0S, w, Phi, Wt.transpose(1, 2), lights, cfg.order, held, scale_M,
+                r = _fold_residuals(yS, w0S, w, Phi, Wt.transpose(1, 2), cfg.order, held, scale_M,
                                     cfg.cauchy_c, _FOLD_PASSES)
                 res_M[:, held] = r[:, held]
             scales.append(scale_M)
