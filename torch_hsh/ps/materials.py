@@ -42,10 +42,11 @@ lights — in the units of the data, and need no parameter count.
 
 Cost: 4 shortened calibrations and 12 refits on at most 256 pixels, then the
 one full calibration of the chosen ``M`` (stage 3). Measured with
-``benchmarks/bench_materials_auto.py`` (400 pixels, 40 lights, 1 thread): the
-selection takes 0.2-0.3 of the time of a whole ``materials=2`` solve, and a
-whole ``"auto"`` solve 1.1-1.5x the CPU time of ``materials=2`` (the upper end
-when it picks ``M = 4``, whose calibration is dearer). On larger images the
+``benchmarks/bench_materials_auto.py`` (400 pixels, 40 lights, 1 thread, 5
+scenes x 3 seeds): the selection takes 0.2-0.5 of the time of a whole
+``materials=2`` solve, and a whole ``"auto"`` solve 0.75-1.54x (median 1.40)
+the CPU time of ``materials=2`` (the upper end when it picks ``M = 4``, whose
+calibration is dearer). On larger images the
 ratio falls: the selection does not grow with the image (3,000 pixels of
 the DiLiGenT cat and harvest, 96 lights: 1.25 and 1.16, the selection itself
 0.07 of a ``materials=2`` solve).
