@@ -8,10 +8,14 @@ PYTHON ?= python3
 PY := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.torch_hsh_installed
+DOCS_STAMP := $(VENV)/.torch_hsh_docs_installed
+DEV_STAMP := $(VENV)/.torch_hsh_dev_installed
+# Docstring examples to skip (none at present).
+DOCTEST_DESELECT ?=
 
-.PHONY: demo test test-fast bench env clean
+.PHONY: demo test test-fast test-lowest doctest docs lint bench env clean
 
-$(STAMP): setup.py
+$(STAMP): pyproject.toml setup.py
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q "$(TORCH_SPEC)"
 	$(PY) -m pip install -q -e ".[test,examples]"
@@ -28,9 +32,34 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	OMP_NUM_THREADS=2 $(PY) -m pytest -q -m "not slow" $(ARGS)
 
+# The docstring examples as doctests.
+doctest: $(STAMP)
+	OMP_NUM_THREADS=2 $(PY) -m pytest -q -p no:cacheprovider --doctest-modules torch_hsh $(DOCTEST_DESELECT) $(ARGS)
+
+$(DOCS_STAMP): $(STAMP) pyproject.toml
+	$(PY) -m pip install -q -e ".[docs]"
+	touch $(DOCS_STAMP)
+
+# The HTML site (Sphinx + furo + myst-parser), warnings are errors: docs/_build/html/index.html
+docs: $(DOCS_STAMP)
+	$(PY) -m sphinx -W --keep-going -q -b html docs docs/_build/html
+
+$(DEV_STAMP): $(STAMP) pyproject.toml
+	$(PY) -m pip install -q -e ".[dev]"
+	touch $(DEV_STAMP)
+
+# Static checks: ruff (config in pyproject.toml) and mypy.
+lint: $(DEV_STAMP)
+	$(PY) -m ruff check torch_hsh tests examples benchmarks
+	$(PY) -m mypy torch_hsh
+
+# Lowest allowed dependency versions (own venv, torch kept at the CPU wheel), fast tests.
+test-lowest:
+	TORCH_SPEC="$(TORCH_SPEC)" $(PYTHON) .ci/check_lowest_versions.py --venv .venv-lowest $(ARGS)
+
 bench: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]"
 	$(PY) benchmarks/bench_basis.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) .venv-lowest build dist *.egg-info .pytest_cache docs/_build

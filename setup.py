@@ -1,39 +1,4 @@
-"""Packaging for torch-hsh (import name ``torch_hsh``)."""
-import re
-from pathlib import Path
+"""Build shim: the package metadata lives in pyproject.toml (PEP 621)."""
+from setuptools import setup
 
-from setuptools import find_packages, setup
-
-here = Path(__file__).parent
-version = re.search(r'__version__ = "([^"]+)"', (here / "torch_hsh" / "__init__.py").read_text()).group(1)
-
-setup(
-    name="torch-hsh",
-    version=version,
-    description="Differentiable Helmholtz hemispherical-harmonic BRDF bases, fitting and photometric stereo for PyTorch",
-    long_description=(here / "README.md").read_text(encoding="utf-8"),
-    long_description_content_type="text/markdown",
-    license="MIT",
-    packages=find_packages(include=["torch_hsh", "torch_hsh.*"]),
-    python_requires=">=3.9",
-    # torch is deliberately a loose lower bound: install the CPU wheel first
-    # (``pip install torch==2.13.0``) so that nothing pulls the CUDA build.
-    install_requires=[
-        "torch>=2.1",
-        "numpy>=1.22",
-        "scipy>=1.9",
-        "kornia>=0.7",
-        "OpenEXR>=3.2",
-        "scikit-image>=0.21",
-    ],
-    extras_require={
-        "examples": ["matplotlib>=3.6", "tqdm>=4.60"],
-        "test": ["pytest>=7", "hypothesis>=6", "matplotlib>=3.6", "tqdm>=4.60"],
-        "bench": ["e3nn>=0.5", "sphericart-torch>=0.5"],
-    },
-    classifiers=[
-        "Programming Language :: Python :: 3",
-        "Intended Audience :: Science/Research",
-        "Topic :: Scientific/Engineering :: Image Processing",
-    ],
-)
+setup()

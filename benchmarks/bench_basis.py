@@ -119,15 +119,15 @@ def main() -> None:
         sph = sct.SphericalHarmonics(L) if sct is not None else None
         e3_ls = list(range(L + 1))
         for mode, wrap in (("fwd", fwd), ("fwd+bwd", fwd_bwd)):
-            t_ours = timeit(wrap(lambda x: torch_hsh.hsh(x, L), d), args.repeats, args.warmup)
+            t_ours = timeit(wrap(lambda x, L=L: torch_hsh.hsh(x, L), d), args.repeats, args.warmup)
             t_e3 = None
             if o3 is not None:
-                t_e3 = timeit(wrap(lambda x: o3.spherical_harmonics(e3_ls, x, normalize=True), d),
+                t_e3 = timeit(wrap(lambda x, ls=e3_ls: o3.spherical_harmonics(ls, x, normalize=True), d),
                               args.repeats, args.warmup)
             t_sc = None
             if sph is not None:
-                t_sc = timeit(wrap(lambda x: sph(x), d), args.repeats, args.warmup)
-            t_iso = timeit(wrap(lambda x: torch_hsh.helmholtz_isotropic(x, d2, L), d), args.repeats, args.warmup)
+                t_sc = timeit(wrap(sph, d), args.repeats, args.warmup)
+            t_iso = timeit(wrap(lambda x, L=L: torch_hsh.helmholtz_isotropic(x, d2, L), d), args.repeats, args.warmup)
             e3s = "      n/a" if t_e3 is None else f"{1e3 * t_e3:9.2f}"
             scs = "      n/a" if t_sc is None else f"{1e3 * t_sc:9.2f}"
             print(f"{L:>5} {mode:>8} {1e3 * t_ours:9.2f} {e3s} {scs} "

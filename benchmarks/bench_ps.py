@@ -1,107 +1,104 @@
-"""Benchmark the photometric-stereo solvers on 2 CPU threads.
+"""Speed of the HSH photometric-stereo solver, with stage shares and the ratio to a baseline measured in the same run.
 
 Usage:
-    python benchmarks/bench_ps.py --data ../shared/data/bunny_specular
-    python benchmarks/bench_ps.py --synthetic-size 16000 --lights 96
+    python benchmarks/bench_ps.py --synthetic-size 16000 --lights 96 --repeat 3 --baseline
+    python benchmarks/bench_ps.py --data ../shared/data/bunny_specular --baseline
+    python benchmarks/bench_ps.py --stack 1024 --lights 96          # memory: peak RSS of a solve from a float32 stack
 
-``--data``: a DiLiGenT-layout folder with ground truth; prints mean / median
-angular error and time of Lambertian LS, robust (trimmed) Lambertian and the
-HSH solver (shared basis BRDFs, the default; ``--independent`` adds the
-independent per-pixel model). ``--synthetic-size N``: times the HSH solver on a DiLiGenT-sized
-synthetic problem (N pixels, ``--lights`` lights, RGB, Blinn-Phong + GGX).
+``--synthetic-size N``: a DiLiGenT-sized problem (N pixels, ``--lights``
+lights, RGB, Blinn–Phong with random albedo, random normals, read noise).
+``--data DIR``: a DiLiGenT-layout folder (errors against its ground truth).
+``--baseline``: also run the solver of commit 6d85856 with only its float32
+``linspace`` crash fixed (extracted with ``git archive``), alternating runs
+with the working tree, and print the speed-up. Every run is its own process;
+both wall and CPU time are reported (on a shared, oversubscribed machine the
+CPU time is the fairer clock). ``--stack S``: solve an S x S, ``--lights``-light
+float32 RGB stack written to and loaded from disk (a sphere rendered by the
+library), and report the peak RSS against the stack size.
 """
 from __future__ import annotations
 
 import argparse
-import time
+import statistics
+import sys
+from pathlib import Path
 
-import torch
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _baseline import ROOT, baseline_tree, run_worker  # noqa: E402
 
-
-def run_data(path, order, threads, max_pixels=None, independent=False):
-    from torch_hsh import ps
-    from torch_hsh.io.diligent import load_diligent
-
-    d = load_diligent(path, dtype=torch.float64)
-    mask = d.mask
-    if max_pixels:
-        idx = mask.reshape(-1).nonzero().squeeze(1)
-        g = torch.Generator().manual_seed(0)
-        keep = idx[torch.randperm(idx.numel(), generator=g)[:max_pixels]]
-        m = torch.zeros(mask.numel(), dtype=torch.bool)
-        m[keep] = True
-        mask = m.reshape(mask.shape)
-    print(f"{path}: {int(mask.sum())} pixels, {d.images.shape[0]} lights, {threads} threads")
-    rows = []
-    for name, fn in (
-        ("Lambertian LS", lambda: ps.lambertian_ls(d.images, d.lights, mask=mask)),
-        ("robust Lambertian (25%/10%)", lambda: ps.robust_lambertian(d.images, d.lights, mask=mask)),
-        (f"HSH order {order} (shared, default)", lambda: ps.solve_hsh(d.images, d.lights, mask=mask, order=order)),
-    ) + ((
-        (f"HSH order {order} (independent)",
-         lambda: ps.solve_hsh(d.images, d.lights, mask=mask, order=order, materials=None)),
-    ) if independent else ()):
-        t = time.perf_counter()
-        r = fn()
-        dt = time.perf_counter() - t
-        e = ps.angular_error(r.normals, d.normals_gt)[mask] if d.normals_gt is not None else torch.tensor([float("nan")])
-        rows.append((name, float(e.mean()), float(e.median()), dt))
-    print(f"{'method':34s} {'mean':>7s} {'median':>7s} {'time s':>8s}")
-    for name, m, md, dt in rows:
-        print(f"{name:34s} {m:7.2f} {md:7.2f} {dt:8.2f}")
+STAGES = ("observations", "initialisation", "calibration", "refinement", "coefficients", "result")
 
 
-def run_synthetic(n_pix, n_lights, order, repeat=3):
-    from torch_hsh import ps
-    from torch_hsh.brdf import BlinnPhong
-    from torch_hsh.render import render
-
-    g = torch.Generator().manual_seed(0)
-    n = torch.randn(n_pix, 3, generator=g, dtype=torch.float64) * torch.tensor([0.4, 0.4, 0.2], dtype=torch.float64)
-    n[:, 2] += 1.0
-    n = torch.nn.functional.normalize(n, dim=-1)
-    l = torch.randn(n_lights, 3, generator=g, dtype=torch.float64) * torch.tensor([0.4, 0.4, 0.1], dtype=torch.float64)
-    l[:, 2] += 1.0
-    l = torch.nn.functional.normalize(l, dim=-1)
-    alb = 0.2 + 0.6 * torch.rand(n_pix, 3, generator=g, dtype=torch.float64)
-    img = render(n, l, BlinnPhong(alb, torch.full((n_pix, 1), 0.3, dtype=torch.float64),
-                                  torch.full((n_pix, 1), 20.0, dtype=torch.float64)), read_noise=1e-3, seed=0)
-    times = []
-    for _ in range(max(1, repeat)):
-        t = time.perf_counter()
-        r = ps.solve_hsh(img, l, order=order, progress=repeat == 1)
-        times.append(time.perf_counter() - t)
-    times.sort()
-    dt = times[len(times) // 2]
-    e = ps.angular_error(r.normals, n)
-    if len(times) > 1:
-        print(f"runs: {', '.join(f'{x:.2f}' for x in times)} s (best {times[0]:.2f}, median {dt:.2f})")
-    print(f"synthetic: {n_pix} pixels x {n_lights} lights x RGB, order {order}: {dt:.2f} s (median), "
-          f"mean error {float(e.mean()):.2f} deg (Lambertian LS "
-          f"{float(ps.angular_error(ps.lambertian_ls(img, l).normals, n).mean()):.2f})")
+def _summary(label, runs):
+    h = [r["methods"]["hsh"] for r in runs]
+    wall = statistics.median(x["time_s"] for x in h)
+    cpu = statistics.median(x["cpu_s"] for x in h)
+    err = statistics.mean(x["mean"] for x in h) if "mean" in h[0] else float("nan")
+    walls = ", ".join(f"{x['time_s']:.1f}" for x in h)
+    print(f"{label:28s} wall {wall:7.2f} s (runs {walls})  cpu {cpu:7.2f} s  "
+          f"mean error {err:.2f} deg  peak RSS {max(r['peak_rss_mb'] for r in runs):.0f} MB")
+    info = h[0]["info"]
+    if any(f"time_{s}_s" in info for s in STAGES):
+        tot = sum(info.get(f"time_{s}_s", 0.0) for s in STAGES)
+        print("    stage shares: " + ", ".join(f"{s} {100 * info.get(f'time_{s}_s', 0.0) / tot:.0f}%" for s in STAGES
+                                              if f"time_{s}_s" in info))
+    return wall, cpu, err
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=None)
     ap.add_argument("--synthetic-size", type=int, default=0)
+    ap.add_argument("--stack", type=int, default=0, help="S: memory run on an S x S float32 stack from disk")
     ap.add_argument("--lights", type=int, default=96)
     ap.add_argument("--order", type=int, default=None)
+    ap.add_argument("--materials", default="default")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--repeat", type=int, default=3, help="synthetic timing: runs (median and best reported)")
-    ap.add_argument("--max-pixels", type=int, default=None, help="random subset of the mask (quick runs)")
-    ap.add_argument("--independent", action="store_true", help="also run the independent per-pixel model (slow)")
-    args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    from torch_hsh.ps import DEFAULT_ORDER
-
-    order = DEFAULT_ORDER if args.order is None else args.order
-    if args.data:
-        run_data(args.data, order, args.threads, args.max_pixels, args.independent)
+    ap.add_argument("--repeat", type=int, default=3, help="runs per solver (alternating with the baseline)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--baseline", action="store_true", help="also time commit 6d85856 (+ linspace fix)")
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args(argv)
+    if not (args.data or args.synthetic_size or args.stack):
+        ap.error("give --data DIR, --synthetic-size N and/or --stack S")
+    common = ["--threads", args.threads, "--device", args.device, "--materials", args.materials]
+    if args.order is not None:
+        common += ["--order", args.order]
+    problems = []
     if args.synthetic_size:
-        run_synthetic(args.synthetic_size, args.lights, order, args.repeat)
-    if not args.data and not args.synthetic_size:
-        ap.error("give --data DIR and/or --synthetic-size N")
+        problems.append((f"synthetic {args.synthetic_size} px x {args.lights} lights",
+                         ["--synthetic", args.synthetic_size, "--lights", args.lights]))
+    if args.data:
+        problems.append((str(args.data), ["--data", args.data]))
+    if args.stack:
+        problems.append((f"{args.stack}x{args.stack} x {args.lights} stack", _stack_args(args.stack, args.lights)))
+    trees = [("working tree", ROOT)] + ([("baseline 6d85856", baseline_tree())] if args.baseline else [])
+    for name, pargs in problems:
+        print(f"\n{name}, {args.threads} threads, device {args.device}")
+        runs = {label: [] for label, _ in trees}
+        for _ in range(max(1, args.repeat)):
+            for s in args.seeds:
+                for label, tree in trees:
+                    mat = common if tree is ROOT else [a if a != "auto" else "default" for a in common]
+                    runs[label].append(run_worker([*pargs, "--methods", "hsh", "--seed", s, *mat], tree))
+        res = {label: _summary(label, r) for label, r in runs.items()}
+        if args.baseline:
+            (w1, c1, e1), (w0, c0, e0) = res["working tree"], res["baseline 6d85856"]
+            print(f"    speed-up over the baseline: wall {w0 / w1:.2f}x, cpu {c0 / c1:.2f}x; "
+                  f"error {e1:.2f} vs {e0:.2f} deg")
+        if args.stack:
+            r = runs["working tree"][0]
+            stack_mb = args.stack * args.stack * args.lights * 3 * 4 / 2**20
+            extra = r["peak_rss_mb"] - r["rss_import_mb"]
+            print(f"    stack {stack_mb:.0f} MB (float32); RSS after import {r['rss_import_mb']:.0f} MB, after load "
+                  f"{r['rss_loaded_mb']:.0f} MB, peak {r['peak_rss_mb']:.0f} MB: peak - import = {extra:.0f} MB = "
+                  f"{extra / stack_mb:.2f}x the stack (target <= 3x)")
+
+
+def _stack_args(size, lights):
+    from _stack import ensure_stack
+
+    return ["--data", ensure_stack(size, lights)]
 
 
 if __name__ == "__main__":

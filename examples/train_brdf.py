@@ -162,7 +162,7 @@ def main(argv=None) -> int:
         alb_target = (target(mc_dirs, z) * mc_dirs[:, 2:3]).mean(0) * 2.0 * math.pi
         alb_fit = model.albedo(z)
 
-    print(f"\norder {args.order}: {model.num_coefficients} coefficients x {channels} channels, "
+    print(f"\norder {args.order}: {model.num_functions} coefficients x {channels} channels, "
           f"{args.train_samples} train / {args.test_samples} held-out samples, device {device}")
     print(f"Adam ({args.steps} steps, {t_adam:.1f} s): held-out RMSE {r_adam:.5f} "
           f"(relative {r_adam / scale:.4f}), train RMSE {r_train:.5f}")

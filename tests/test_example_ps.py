@@ -30,7 +30,8 @@ def test_demo_output_contract(tmp_path, materials):
         assert key in m, key
     assert m["materials"] == {"0": None, "auto": "auto"}.get(materials, int(materials) if materials.isdigit() else None)
     if materials == "auto":  # the choice and the criterion are reported
-        assert m["materials_chosen"] in (1, 2, 3, 4) and len(m["solver_info"]["materials_criterion"]) == 4
+        info = m["solver_info"]
+        assert info["materials_chosen"] in (1, 2, 3, 4) and len(info["materials_criterion"]) == 4
     n = np.load(out / "normals.npy")
     assert n.dtype == np.float32 and n.shape == (28, 28, 3)
     # the non-Lambertian solver beats Lambertian least squares on the analytic-BRDF scene

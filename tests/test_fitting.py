@@ -339,6 +339,17 @@ def test_energy_accuracy_hand_computed():
     assert torch.allclose(F.energy_accuracy(b, 50.0, ANI), torch.tensor([16 / 50, 25 / 50], dtype=D))
 
 
+def test_energy_accuracy_rejects_energy_below_the_coefficients():
+    a = torch.zeros(20, dtype=D)
+    a[0], a[19] = 3.0, 4.0  # holds 25
+    with pytest.raises(ValueError, match="below the energy the coefficients hold"):
+        F.energy_accuracy(a, 0.025)  # would give Acc = 1000
+    with pytest.raises(ValueError, match="total_energy"):
+        F.energy_accuracy(torch.stack([a, a]), torch.tensor([25.0, 20.0], dtype=D))
+    # rounding-level excess (quadrature estimates of the two sides) is tolerated
+    assert float(F.energy_accuracy(a, 25.0 * (1 - 1e-4))[-1]) > 1.0
+
+
 def test_energy_accuracy_monotone_and_one_for_bandlimited():
     a = rand_coeffs(ISO, 3, seed=13, channels=2)
     e = F.brdf_energy(bandlimited(a, 3, ISO), 3)
@@ -451,6 +462,13 @@ def test_fit_weights():
         F.fit(wi, wo, y, P, weights=-w)
     with pytest.raises(ValueError, match="weights"):
         F.fit(wi, wo, y, P, weights=w[:5])
+    # all-zero weights fit nothing: an error, not a "perfect fit" with rms 0
+    with pytest.raises(ValueError, match="`weights` are all zero"):
+        F.fit(wi, wo, y, P, weights=torch.zeros(N, dtype=D), ridge=1e-3, return_info=True)
+    wb = torch.ones(3, N, dtype=D)
+    wb[1] = 0.0
+    with pytest.raises(ValueError, match="all zero for batch entry 1"):
+        F.fit(wi, wo, y.expand(3, N).unsqueeze(-1), P, weights=wb)
 
 
 def test_fit_float32_promoted_to_float64():

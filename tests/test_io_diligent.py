@@ -1,5 +1,6 @@
 """Tests for torch_hsh.io.diligent (DiLiGenT folder layout, 16-bit PNG I/O)."""
 import struct
+import sys
 import zlib
 
 import numpy as np
@@ -9,7 +10,6 @@ import torch
 
 from torch_hsh.io.diligent import (
     PhotometricDataset,
-    _decode_png_numpy,
     _png_info,
     _read_png,
     _write_png,
@@ -116,26 +116,57 @@ def _encode_all_filters(img):
     )
 
 
+def _decode_reference(data):
+    """Independent PNG decoder for non-interlaced grey/RGB/RGBA 8/16-bit (byte loops; small images only)."""
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, idat = 8, b""
+    while pos < len(data):
+        (n,) = struct.unpack(">I", data[pos : pos + 4])
+        t, body = data[pos + 4 : pos + 8], data[pos + 8 : pos + 8 + n]
+        if t == b"IHDR":
+            w, h, depth, ctype, _, _, interlace = struct.unpack(">IIBBBBB", body)
+        elif t == b"IDAT":
+            idat += body
+        pos += 12 + n
+    assert interlace == 0
+    ch = {0: 1, 2: 3, 6: 4}[ctype]
+    bpp = ch * depth // 8
+    raw = zlib.decompress(idat)
+    stride = w * bpp
+    prev, out = [0] * stride, []
+    for r in range(h):
+        ftype, line = raw[r * (stride + 1)], raw[r * (stride + 1) + 1 : (r + 1) * (stride + 1)]
+        cur = []
+        for i, x in enumerate(line):
+            a = cur[i - bpp] if i >= bpp else 0
+            b, c = prev[i], (prev[i - bpp] if i >= bpp else 0)
+            cur.append((x + [0, a, b, (a + b) // 2, _paeth(a, b, c)][ftype]) & 0xFF)
+        out.append(cur)
+        prev = cur
+    arr = np.asarray(out, dtype=np.uint8)
+    img = arr.view(">u2").astype(np.uint16) if depth == 16 else arr
+    return img.reshape(h, w, ch)
+
+
 @pytest.mark.parametrize("dtype,ch", [(np.uint16, 3), (np.uint8, 3), (np.uint16, 1), (np.uint8, 4)])
-def test_numpy_png_decoder_all_filter_types(tmp_path, dtype, ch):
+def test_png_reader_all_filter_types(tmp_path, dtype, ch):
     g = np.random.default_rng(0)
     img = g.integers(0, np.iinfo(dtype).max + 1, size=(11, 6, ch)).astype(dtype)
     f = tmp_path / "f.png"
     f.write_bytes(_encode_all_filters(img))
-    dec = _decode_png_numpy(f)
+    dec = _read_png(f)
     assert dec.dtype == dtype
     np.testing.assert_array_equal(dec, img[..., 0] if ch == 1 else img)
-    # the production reader (kornia_rs for 16 bit, imageio for 8 bit) agrees
-    np.testing.assert_array_equal(_read_png(f), img[..., 0] if ch == 1 else img)
 
 
-def test_png_writer_16bit_rgb_roundtrip(tmp_path):
-    img = np.random.default_rng(2).integers(0, 65536, size=(9, 13, 3)).astype(np.uint16)
+@pytest.mark.parametrize("dtype,ch", [(np.uint16, 3), (np.uint16, 1), (np.uint8, 1), (np.uint8, 4)])
+def test_png_writer_bit_exact(tmp_path, dtype, ch):
+    img = np.random.default_rng(2).integers(0, np.iinfo(dtype).max + 1, size=(9, 13, ch)).astype(dtype)
     f = tmp_path / "x.png"
-    _write_png(f, img)
-    assert _png_info(f)[:4] == (13, 9, 16, 2)  # width, height, 16 bit, RGB
-    np.testing.assert_array_equal(_read_png(f), img)
-    np.testing.assert_array_equal(_decode_png_numpy(f), img)
+    _write_png(f, img[..., 0] if ch == 1 else img)
+    assert _png_info(f)[:4] == (13, 9, 8 * np.dtype(dtype).itemsize, {1: 0, 3: 2, 4: 6}[ch])
+    np.testing.assert_array_equal(_decode_reference(f.read_bytes()), img)  # independent decoder
+    np.testing.assert_array_equal(_read_png(f), img[..., 0] if ch == 1 else img)
 
 
 def test_png_reader_rejects_non_png(tmp_path):
@@ -143,6 +174,44 @@ def test_png_reader_rejects_non_png(tmp_path):
     f.write_bytes(b"not a png at all, definitely not a png")
     with pytest.raises(ValueError, match="not a PNG"):
         _read_png(f)
+
+
+def test_png_reader_truncated_file_names_it(tmp_path):
+    img = np.random.default_rng(3).integers(0, 65536, size=(40, 30, 3)).astype(np.uint16)
+    f = tmp_path / "trunc.png"
+    _write_png(f, img)
+    f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+    with pytest.raises(ValueError, match=r"trunc\.png: cannot decode the 16-bit PNG"):
+        _read_png(f)
+
+
+def test_png_without_kornia_rs_fails_loudly(tmp_path, monkeypatch):
+    f = tmp_path / "x.png"
+    _write_png(f, np.zeros((4, 5, 3), np.uint16))
+    monkeypatch.setitem(sys.modules, "kornia_rs", None)  # import kornia_rs -> ImportError
+    with pytest.raises(ImportError, match="kornia-rs"):
+        _read_png(f)
+    with pytest.raises(ImportError, match="kornia-rs"):
+        _write_png(tmp_path / "y.png", np.zeros((4, 5, 3), np.uint16))
+
+
+def test_palette_and_grey_alpha_masks_via_pillow(tmp_path):
+    from PIL import Image
+
+    m = (np.arange(H * W).reshape(H, W) % 3).astype(np.uint8)
+    im = Image.fromarray(m, "P")
+    im.putpalette([0, 0, 0, 255, 255, 255, 10, 20, 30])
+    im.save(tmp_path / "p.png")
+    assert _png_info(tmp_path / "p.png")[3] == 3
+    np.testing.assert_array_equal(_read_png(tmp_path / "p.png").max(-1) > 0, m > 0)
+    Image.fromarray(np.stack([m * 100, m * 0 + 255], -1), "LA").save(tmp_path / "la.png")
+    got = _read_png(tmp_path / "la.png")
+    assert got.shape == (H, W, 2)
+    np.testing.assert_array_equal(got[..., 0], m * 100)
+    # load_diligent accepts such a mask
+    _handmade_folder(tmp_path / "o")
+    im.save(tmp_path / "o" / "mask.png")
+    np.testing.assert_array_equal(load_diligent(tmp_path / "o").mask.numpy(), m > 0)
 
 
 # --------------------------------------------------------------------------- #
@@ -170,7 +239,9 @@ def test_load_handmade_folder(tmp_path):
 
 def test_load_drop_first_and_max_images(tmp_path):
     ref = _handmade_folder(tmp_path / "o", names=("1.png", "2.png", "3.png"))
-    d = load_diligent(tmp_path / "o", drop_first=1, max_images=1, dtype=torch.float64)
+    with pytest.raises(ValueError, match="fewer than 3 dimensions"):
+        load_diligent(tmp_path / "o", drop_first=1, max_images=1)
+    d = load_diligent(tmp_path / "o", drop_first=1, max_images=1, dtype=torch.float64, check_lights=False)
     assert d.names == ["2.png"]
     np.testing.assert_allclose(d.lights.numpy(), ref["lights"][1:2], atol=1e-8)
     np.testing.assert_allclose(d.images[0].numpy(), ref["codes"][1] / 65535.0 / ref["intens"][1], rtol=1e-12)
@@ -276,10 +347,53 @@ def test_load_errors(tmp_path):
     with pytest.raises(ValueError, match="no variable 'Normal_gt'"):
         load_diligent(p)
 
+    p = fresh("binary")
+    (p / "light_directions.txt").write_bytes(b"\x00\x01\xff\xfe" * 8)
+    with pytest.raises(ValueError, match=r"light_directions\.txt: binary file"):
+        load_diligent(p)
+    (p / "light_directions.txt").write_bytes(b"0 0 1\n\xff\xfe 0 1\n")
+    with pytest.raises(ValueError, match=r"light_directions\.txt: not a UTF-8 text file"):
+        load_diligent(p)
+
+    p = fresh("matcorrupt")
+    raw = (p / "Normal_gt.mat").read_bytes()
+    (p / "Normal_gt.mat").write_bytes(raw[:200])
+    with pytest.raises(ValueError, match=r"Normal_gt\.mat: cannot read the MATLAB file"):
+        load_diligent(p)
+    (p / "Normal_gt.mat").write_bytes(b"MATLAB 5.0" + bytes(range(256)) * 2)
+    with pytest.raises(ValueError, match=r"Normal_gt\.mat"):
+        load_diligent(p)
+
+    p = fresh("pngtrunc")
+    (p / "a.png").write_bytes((p / "a.png").read_bytes()[:150])
+    with pytest.raises(ValueError, match=r"a\.png: cannot decode"):
+        load_diligent(p)
+
+    for bad, msg in [("../x.png\nb.png\nc.png\n", "outside the folder"), ("/etc/x.png\nb.png\nc.png\n", "outside"),
+                     ("a.png\nb.png\na.png\n", "line 3.*repeats line 1")]:
+        p = fresh("names" + str(len(msg)))
+        (p / "filenames.txt").write_text(bad)
+        with pytest.raises(ValueError, match=msg):
+            load_diligent(p)
+
     p = fresh("mixed")
     _write_png(p / "a.png", np.zeros((H, W, 3), np.uint8))
     with pytest.raises(ValueError, match="bit depth 8 differs"):
         load_diligent(p)
+
+
+@pytest.mark.parametrize("rows,msg", [
+    ("0 0.6 0.8\n0 0 1\n0.6 0 -0.8\n", "row 3 has z = -0.8 <= 0"),
+    ("0 0.6 0.8\n1 0 0\n0 -0.6 0.8\n", "row 2 has z = 0 <= 0"),
+    ("0 0.6 0.8\n0 0.6 0.8\n0 0.6 0.8\n", "fewer than 3 dimensions"),  # identical
+    ("0 0.6 0.8\n0 0 1\n0 -0.6 0.8\n", "fewer than 3 dimensions"),  # coplanar with the view (y-z plane)
+    ("0.6 0 0.8\n0 0.6 0.8\n0.331295 0.331295 0.883452\n", "fewer than 3 dimensions"),  # a+b in span(a, b)
+])  # fmt: skip
+def test_load_rejects_degenerate_lights(tmp_path, rows, msg):
+    _handmade_folder(tmp_path / "o")
+    (tmp_path / "o" / "light_directions.txt").write_text(rows)
+    with pytest.raises(ValueError, match=msg):
+        load_diligent(tmp_path / "o")
 
 
 # --------------------------------------------------------------------------- #
@@ -351,6 +465,15 @@ def test_save_refuses_non_empty_folder(tmp_path):
     save_diligent(tmp_path / "o", images, lights, overwrite=True)
     assert (tmp_path / "o" / "keep.txt").exists()
     _close(load_diligent(tmp_path / "o", dtype=torch.float64).lights, lights, rtol=0, atol=1e-15)
+    # only its own files are replaced: an unrelated Normal_gt.mat is neither deleted nor left as ground truth
+    scipy.io.savemat(str(tmp_path / "o" / "Normal_gt.mat"), {"Normal_gt": np.ones((H, W, 3))})
+    before = (tmp_path / "o" / "Normal_gt.mat").read_bytes()
+    with pytest.raises(FileExistsError, match="Normal_gt.mat"):
+        save_diligent(tmp_path / "o", images, lights, overwrite=True)
+    assert (tmp_path / "o" / "Normal_gt.mat").read_bytes() == before
+    normals = torch.nn.functional.normalize(torch.rand(H, W, 3, dtype=torch.float64) + 0.1, dim=-1)
+    save_diligent(tmp_path / "o", images, lights, normals_gt=normals, overwrite=True)
+    assert torch.equal(load_diligent(tmp_path / "o", dtype=torch.float64).normals_gt, normals)
     # an empty existing folder is fine without overwrite
     (tmp_path / "e").mkdir()
     save_diligent(tmp_path / "e", images, lights)

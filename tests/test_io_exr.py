@@ -92,6 +92,22 @@ def test_read_errors(tmp_path):
         read_exr(tmp_path / "trunc.exr")
 
 
+def test_truncated_pixel_data_names_the_file(tmp_path):
+    write_exr(tmp_path / "full.exr", {"R": np.random.default_rng(0).random((64, 64)).astype(np.float32)})
+    raw = (tmp_path / "full.exr").read_bytes()
+    (tmp_path / "half.exr").write_bytes(raw[: len(raw) // 2])  # header intact, pixel chunks cut
+    for reader in (read_exr, read_envmap, read_image_stack_exr):
+        # the message names the file (the reason's wording depends on the OpenEXR version)
+        with pytest.raises(ValueError, match=r"could not read OpenEXR file .*half\.exr: "):
+            reader(tmp_path / "half.exr")
+    cm = tmp_path / "cm.exr"
+    write_coefficient_maps_exr(cm, np.random.default_rng(1).random((64, 64, 3, 4)).astype(np.float32))
+    raw = cm.read_bytes()
+    cm.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(ValueError, match=r"could not read OpenEXR file .*cm\.exr: "):
+        read_coefficient_maps_exr(cm)
+
+
 def test_image_stack_roundtrip(tmp_path):
     imgs = torch.rand(12, H, W, 3, dtype=torch.float64)
     write_image_stack_exr(tmp_path / "s.exr", imgs)

@@ -167,6 +167,22 @@ def test_refuses_to_overwrite(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["x.binary"]  # no temporary files left behind
 
 
+@pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+def test_write_mode_follows_umask_like_other_writers(tmp_path, umask):
+    old = os.umask(umask)
+    try:
+        write_merl(tmp_path / "m.binary", torch.zeros(3, 2, 2, 2, dtype=D64))
+        (tmp_path / "plain.txt").write_text("x")  # what open() / the other writers give
+    finally:
+        os.umask(old)
+    mode = (tmp_path / "m.binary").stat().st_mode & 0o777
+    assert mode == 0o666 & ~umask == (tmp_path / "plain.txt").stat().st_mode & 0o777
+    # replacing keeps the replaced file's mode, as open(..., "wb") would
+    os.chmod(tmp_path / "m.binary", 0o640)
+    write_merl(tmp_path / "m.binary", torch.ones(3, 2, 2, 2, dtype=D64), overwrite=True)
+    assert (tmp_path / "m.binary").stat().st_mode & 0o777 == 0o640
+
+
 def _write_bytes(path, header, n_values):
     with open(path, "wb") as fh:
         fh.write(np.asarray(header, "<i4").tobytes())

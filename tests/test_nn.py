@@ -217,10 +217,37 @@ def test_state_dict_round_trip(learnable):
     m2.load_state_dict(torch.load(buf))
     wi, wo = _hemi(20, dtype=torch.float32, seed=18), _hemi(20, dtype=torch.float32, seed=19)
     torch.testing.assert_close(m2(wi, wo), m(wi, wo), rtol=0, atol=0)
-    # a state_dict of another order does not load
+    # a state_dict of another order does not load, and says why
     m3 = HelmholtzBRDF(3, channels=3, learnable=learnable)
-    with pytest.raises(RuntimeError, match="size mismatch"):
+    with pytest.raises(ValueError, match=r"order=2 \(module has 3\)"):
         m3.load_state_dict(m.state_dict())
+    # a checkpoint from before the configuration was kept still loads (strict), or fails on shapes
+    old = {k: v for k, v in m.state_dict().items() if k != "_extra_state"}
+    m2.load_state_dict(old)
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        m3.load_state_dict(old)
+
+
+@pytest.mark.parametrize("isotropic", [True, False])
+def test_checkpoint_keeps_order_channels_isotropy(isotropic):
+    m = HelmholtzBRDF(2, isotropic=isotropic, channels=3, nonnegative=True, learnable=False, dtype=torch.float64)
+    with torch.no_grad():
+        m.coefficients.copy_(torch.randn(m.coefficients.shape, generator=torch.Generator().manual_seed(3),
+                                         dtype=torch.float64))
+    sd = m.state_dict()
+    assert sd["_extra_state"]["order"] == 2 and sd["_extra_state"]["isotropic"] is isotropic
+    buf = io.BytesIO()
+    torch.save(sd, buf)
+    buf.seek(0)
+    m2 = HelmholtzBRDF.from_state_dict(torch.load(buf))  # no order/channels/isotropic repeated
+    assert (m2.order, m2.isotropic, m2.channels, m2.nonnegative, m2.learnable) == (2, isotropic, 3, True, False)
+    assert m2.coefficients.dtype == torch.float64 and torch.equal(m2.coefficients, m.coefficients)
+    # inside a bigger model: the prefix selects it
+    net = torch.nn.Sequential(torch.nn.Linear(2, 2), m)
+    m3 = HelmholtzBRDF.from_state_dict(net.state_dict(), prefix="1.")
+    assert torch.equal(m3.coefficients, m.coefficients)
+    with pytest.raises(KeyError, match="_extra_state"):
+        HelmholtzBRDF.from_state_dict({"coefficients": m.coefficients})
 
 
 def test_to_float64_and_dtype_mismatch():
@@ -350,11 +377,11 @@ def test_bad_constructor_args():
 def test_repr_and_properties():
     m = HelmholtzBRDF(3, channels=3)
     r = repr(m)
-    assert "order=3" in r and "channels=3" in r and "num_coefficients=20" in r and "isotropic" in r
-    assert m.num_coefficients == 20
+    assert "order=3" in r and "channels=3" in r and "num_functions=20" in r and "isotropic" in r
+    assert m.num_functions == m.num_coefficients == 20
     assert torch.equal(m.indices, torch_hsh.isotropic_indices(3))
     a = HelmholtzBRDF(2, isotropic=False)
-    assert a.num_coefficients == 45 and "anisotropic" in repr(a)
+    assert a.num_functions == 45 and "anisotropic" in repr(a)
     assert torch.equal(a.indices, torch_hsh.anisotropic_indices(2))
 
 

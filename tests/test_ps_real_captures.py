@@ -196,3 +196,25 @@ def test_float32_images_are_held_in_float32():
     d = prepare_inputs(img.float(), l.float(), dtype=torch.float64)
     assert d.y.dtype == torch.float32 and d.dtype == torch.float64 and d.lights.dtype == torch.float64
     assert math.isclose(float(d.y.abs().max()), float((img.float()).abs().max()), rel_tol=1e-6)
+
+
+def test_result_save_and_load_round_trip(tmp_path):
+    img, l, _ = _scene(p=48, l=16, seed=12)
+    r = ps.solve_hsh(img.reshape(16, 6, 8, 3), l, **FAST)
+    f = tmp_path / "res.npz"
+    r.save(f)
+    with pytest.raises(FileExistsError):
+        r.save(f)
+    q = ps.HSHResult.load(f)
+    for name in ("normals", "coefficients", "albedo", "residual", "mask", "lights", "confidence", "basis_brdfs",
+                 "mixing"):
+        assert torch.equal(getattr(q, name), getattr(r, name)), name
+    assert q.order == r.order and q.weights.shape == (6, 8, 0)
+    assert q.info["materials"] == r.info["materials"]
+    r.save(f, weights=True, overwrite=True)
+    assert torch.equal(ps.HSHResult.load(f).weights, r.weights)
+    assert torch.allclose(q.relight(l[:2]), r.relight(l[:2]))
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="bad.npz"):
+        ps.HSHResult.load(bad)

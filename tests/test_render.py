@@ -99,6 +99,22 @@ def test_noise_seeded_and_statistics():
     assert abs(float((a - x).mean())) < 5 * expected / math.sqrt(x.numel())
 
 
+def test_render_noise_names_match_add_sensor_noise():
+    n, l = _normals(40), _lights(6)
+    a = torch.zeros(40, 3, 10, dtype=DT)
+    a[..., 0] = 1.0
+    clean = R.render(n, l, a)
+    got = R.render(n, l, a, read_std=0.01, shot_gain=0.002, seed=5)
+    assert torch.equal(got, R.add_sensor_noise(clean, read_std=0.01, shot_gain=0.002, seed=5))
+    with pytest.warns(DeprecationWarning) as rec:
+        old = R.render(n, l, a, read_noise=0.01, shot_noise=0.002, seed=5)
+    assert sorted(str(r.message).split("`")[1] for r in rec) == ["read_noise", "shot_noise"]
+    assert torch.equal(old, got)  # the earlier names still work
+    with pytest.raises(TypeError, match="read_std"):
+        R.render(n, l, a, read_std=0.01, read_noise=0.01)
+    assert R.order_from_num_coefficients is R.order_from_num_functions
+
+
 def test_quantize_and_saturation():
     x = torch.tensor([-0.1, 0.3, 0.50001, 2.0], dtype=DT, requires_grad=True)
     q = R.quantize(x, bits=2, max_value=1.0)
@@ -150,3 +166,25 @@ def test_bad_inputs():
         R.quantize(torch.ones(3), bits=0)
     with pytest.raises(ValueError, match="read_std"):
         R.add_sensor_noise(torch.ones(3), read_std=-1.0)
+
+
+def test_ambient_fraction_in_cast_shadows():
+    n = _normals(6)
+    l = torch.tensor([[0.0, 0.0, 1.0], [0.5, 0.2, 0.84], [0.0, 0.6, -0.8]], dtype=DT)
+    brdf = BlinnPhong(0.7, 0.3, 20.0)
+    vis = torch.ones(3, 6, dtype=torch.bool)
+    vis[0, :3] = False
+    vis[1, 4] = False
+    vis[2, :] = False
+    lit = R.render(n, l, brdf)
+    img0 = R.render(n, l, brdf, visibility=vis)
+    assert torch.equal(R.render(n, l, brdf, visibility=vis, ambient=0.0), img0)  # default unchanged
+    img = R.render(n, l, brdf, visibility=vis, ambient=0.2)
+    assert torch.equal(img[vis], lit[vis])  # lit observations untouched
+    assert torch.allclose(img[~vis], 0.2 * lit[~vis], rtol=1e-12)  # shadows keep 20 % of the light
+    assert bool((img[0, :3] > 0).all()) and bool((img[2] == 0).all())  # attached shadows stay black
+    soft = torch.full((3, 6), 0.5, dtype=DT)
+    assert torch.allclose(R.render(n, l, brdf, visibility=soft, ambient=0.2), 0.6 * lit)
+    assert torch.equal(R.render(n, l, brdf, ambient=0.5), lit)  # no visibility: nothing to fill
+    with pytest.raises(ValueError, match="ambient"):
+        R.render(n, l, brdf, visibility=vis, ambient=1.5)

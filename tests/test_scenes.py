@@ -319,3 +319,16 @@ def test_cast_shadow_errors():
         cast_shadow_mask(torch.zeros(4, 4), torch.zeros(1, 3))
     with pytest.raises(TypeError, match="height"):
         cast_shadow_mask(np.zeros((4, 4)), torch.tensor([[0.0, 0, 1]]))
+
+
+def test_cast_shadow_bias():
+    hgt = _box(height=8.0)
+    elev = math.radians(30.0)
+    light = torch.tensor([[math.cos(elev), 0.0, math.sin(elev)]], dtype=torch.float64)
+    assert torch.equal(cast_shadow_mask(hgt, light, bias=0.0), cast_shadow_mask(hgt, light))
+    # an occluder must now rise 2 units above the ray: the shadow of the 8-high box is 6 / tan(30) = 10.4 long
+    row = cast_shadow_mask(hgt, light, bias=2.0)[0, 20]
+    assert int((~row[:15]).sum()) == 10
+    assert bool(cast_shadow_mask(hgt, light, bias=8.5).all())
+    with pytest.raises(ValueError, match="bias"):
+        cast_shadow_mask(hgt, light, bias=-1.0)

@@ -40,5 +40,8 @@ from .spectra import lambertian_spectrum, mirror_spectrum, mirror_spectrum_print
 from . import brdf  # noqa: E402,F401  (analytic BRDF models: torch_hsh.brdf.get_model)
 from . import scenes  # noqa: E402,F401  (synthetic photometric-stereo scenes: torch_hsh.scenes)
 from . import render  # noqa: E402,F401  (differentiable photometric-stereo image formation)
+from . import surface  # noqa: E402,F401  (normal integration, visibility, depth/mesh export: torch_hsh.surface)
 from . import ps  # noqa: E402,F401  (photometric-stereo solvers: ps.solve_hsh, ps.robust_lambertian, ...)
 from .ps import solve_hsh  # noqa: E402,F401
+from . import envmap  # noqa: E402,F401  (environment lighting: EnvironmentMap, render_envmap)
+from .envmap import EnvironmentLighting, EnvironmentMap, render_envmap, render_envmap_reference  # noqa: E402,F401

@@ -50,13 +50,12 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
-from typing import Dict, List, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 
 from ._checks import (
     MAX_ANISOTROPIC_ORDER,
-    MAX_ORDER,
     broadcast_shapes,
     check_dirs,
     check_order,
@@ -223,9 +222,15 @@ def _iso_gather(order: int):
     for p, r, q in _iso_list(P):
         a, b = col[(p, q)], col[(r, q)]
         if p == r:
-            i1.append(a), j1.append(L + a), i2.append(L), j2.append(0)
+            i1.append(a)
+            j1.append(L + a)
+            i2.append(L)
+            j2.append(0)
         else:
-            i1.append(a), j1.append(b), i2.append(b), j2.append(a)
+            i1.append(a)
+            j1.append(b)
+            i2.append(b)
+            j2.append(a)
     # m of every polar-table column (to attach the azimuthal factor G_q)
     qcol = [0] * L
     for (n, m), cc in col.items():
@@ -246,7 +251,7 @@ def _aniso_gather(order: int):
 _DEVICE_CACHE: Dict[tuple, torch.Tensor] = {}
 
 
-def _const(key: tuple, values, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+def _const(key: tuple, values, device: torch.device, dtype: Optional[torch.dtype]) -> torch.Tensor:
     """Cached constant tensor on ``device``/``dtype``."""
     full = key + (str(device), dtype)
     t = _DEVICE_CACHE.get(full)
@@ -380,9 +385,9 @@ def _iso_kernel_t(zi, zo, a, rho, sio, valid, order: int, same: bool = False) ->
         G.append(a1 * mask)
         for _ in range(2, P + 1):
             G.append(2.0 * a1 * G[-1] - r1 * G[-2])
-    G = torch.stack(G, dim=0) * _col(("gsc", P), g_scale, dev, dt)
+    Gt = torch.stack(G, dim=0) * _col(("gsc", P), g_scale, dev, dt)
     Ri = _polar_table_t(zi, P)
-    Ro = (Ri if same else _polar_table_t(zo, P)) * G.index_select(0, _const(("qcol", P), qcol, dev, None))
+    Ro = (Ri if same else _polar_table_t(zo, P)) * Gt.index_select(0, _const(("qcol", P), qcol, dev, None))
     X = torch.cat([Ri, Ri.new_zeros(1, Ri.shape[1])], dim=0)
     Y = torch.cat([Ro * (1.0 / math.sqrt(2.0)), Ro], dim=0)
     out = X.index_select(0, _const(("iso_i1", P), i1, dev, None)) * Y.index_select(
@@ -597,6 +602,7 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
         Zero where either direction is below the horizon or zero.
 
     Example:
+        >>> import torch_hsh
         >>> wi = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1).abs()
         >>> wo = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1).abs()
         >>> torch_hsh.helmholtz_isotropic(wi, wo, 3).shape
@@ -630,6 +636,7 @@ def helmholtz_isotropic_cosines(
         ``(..., K)`` exactly as :func:`helmholtz_isotropic` for the same geometry.
 
     Example:
+        >>> import torch_hsh
         >>> c = torch.tensor([0.5])
         >>> torch_hsh.helmholtz_isotropic_cosines(c, c, torch.tensor([-1.0]), 2).shape
         torch.Size([1, 10])
@@ -661,6 +668,7 @@ def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> tor
         :func:`anisotropic_indices` (pairs ``j <= k``, j-major).
 
     Example:
+        >>> import torch_hsh
         >>> w = torch.tensor([[0.0, 0.6, 0.8]])
         >>> torch_hsh.helmholtz_anisotropic(w, w, 1).shape
         torch.Size([1, 10])
@@ -700,6 +708,7 @@ def helmholtz_isotropic_world(
         ``(..., K)`` equal to ``helmholtz_isotropic(to_local(wi), to_local(wo), P)``.
 
     Example:
+        >>> import torch_hsh
         >>> n = torch.tensor([0.0, 0.0, 1.0])
         >>> l = torch.tensor([[0.3, 0.0, 0.95]])
         >>> torch_hsh.helmholtz_isotropic_world(l, n, n, 2).shape

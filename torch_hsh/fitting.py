@@ -442,6 +442,7 @@ def _project_fixed(brdf, b, P, K, method, n_theta, n_phi, n_samples, reduced, ch
             if part.shape != acc.shape:
                 raise ValueError(f"`brdf` returned inconsistent channel counts across chunks: {tuple(part.shape)} vs {tuple(acc.shape)}")
             acc = acc + part
+    assert acc is not None  # the quadrature has at least one chunk
     return acc
 
 
@@ -869,8 +870,13 @@ def fit(
             wt = weights.to(f64)
         else:
             raise ValueError(f"`weights` must be (N,) or (B, N) with N={N}, B={Bn}; got {tuple(weights.shape)}")
-        if validation_enabled() and bool((wt < 0).any()):
-            raise ValueError("`weights` must be non-negative")
+        if validation_enabled():
+            if bool((wt < 0).any()):
+                raise ValueError("`weights` must be non-negative")
+            empty = (wt == 0).all(dim=-1)
+            if bool(empty.any()):
+                where = "" if wt.shape[0] == 1 else f" for batch entry {int(empty.nonzero()[0, 0])}"
+                raise ValueError(f"`weights` are all zero{where}: no sample takes part in the fit")
     else:
         wt = None
 
@@ -891,9 +897,9 @@ def fit(
     solver = None
     cond = None
     if method in ("auto", "cholesky"):
-        Lc, info = torch.linalg.cholesky_ex(G)
+        Lc, chol_info = torch.linalg.cholesky_ex(G)
         d = torch.diagonal(Lc, dim1=-2, dim2=-1).abs()
-        ok = bool((info == 0).all())
+        ok = bool((chol_info == 0).all())
         if ok:
             cond = (d.max(-1).values / d.min(-1).values.clamp(min=1e-300)) ** 2
             ok = bool((cond < 1e12).all()) or method == "cholesky"
@@ -1057,6 +1063,11 @@ def truncate(
     return coeffs[..., keep]
 
 
+#: Relative excess of sum(a_k^2) over ``total_energy`` that :func:`energy_accuracy` tolerates
+#: (quadrature / rounding error of the two estimates); beyond it the energy is wrong.
+ENERGY_EXCESS_TOLERANCE = 1e-2
+
+
 def energy_accuracy(
     coeffs: torch.Tensor,
     total_energy: Union[torch.Tensor, float],
@@ -1080,6 +1091,11 @@ def energy_accuracy(
         ``(..., P + 1)``, non-decreasing in the last dimension; equals 1 at
         ``P`` for a function band-limited to ``P`` (Parseval).
 
+    Raises:
+        ValueError: ``total_energy <= 0``, or smaller than the energy the
+            coefficients hold (``Acc(P) > 1 + ENERGY_EXCESS_TOLERANCE``):
+            by Bessel's inequality that energy is not the function's.
+
     Example:
         >>> a = torch.zeros(4, dtype=torch.float64); a[0], a[2] = 3.0, 4.0
         >>> energy_accuracy(a, 25.0).tolist()
@@ -1099,7 +1115,14 @@ def energy_accuracy(
     labels = b.function_orders(P).to(coeffs.device)
     onehot = (labels[:, None] == torch.arange(P + 1, device=coeffs.device)[None, :]).to(coeffs.dtype)  # (K, P+1)
     per_order = (coeffs * coeffs) @ onehot
-    return torch.cumsum(per_order, dim=-1) / total_energy.to(coeffs.dtype).unsqueeze(-1)
+    acc = torch.cumsum(per_order, dim=-1) / total_energy.to(coeffs.dtype).unsqueeze(-1)
+    if validation_enabled() and bool((acc[..., -1] > 1.0 + ENERGY_EXCESS_TOLERANCE).any()):
+        worst = float(acc[..., -1].max())
+        raise ValueError(
+            f"`total_energy` is below the energy the coefficients hold (Acc(P) = {worst:.6g} > 1): pass the "
+            "full energy of the function (e.g. brdf_energy), not a truncated or mismatched one"
+        )
+    return acc
 
 
 # --------------------------------------------------------------------------
@@ -1125,12 +1148,12 @@ def _albedo_matrix(b: Basis, P: int, dtype, device):
     if isinstance(b, HelmholtzAnisotropic):
         idx = _hb.anisotropic_indices(P).tolist()
         S = torch.zeros(len(idx), (P + 1) ** 2, dtype=torch.float64)
-        I = {0: _I0, 2: _I1}  # flat indices of H_0^0, H_1^0
+        Iflat = {0: _I0, 2: _I1}  # flat indices of H_0^0, H_1^0
         for k, (p, q, r, s) in enumerate(idx):
             j, kk = p * p + p + q, r * r + r + s
             n = 1.0 / math.sqrt(2.0 + 2.0 * (j == kk))
-            S[k, kk] += n * I.get(j, 0.0)
-            S[k, j] += n * I.get(kk, 0.0)
+            S[k, kk] += n * Iflat.get(j, 0.0)
+            S[k, j] += n * Iflat.get(kk, 0.0)
         return S.to(dtype=dtype, device=device), lambda wo: _hb.hsh(wo, P)
     return None, None
 

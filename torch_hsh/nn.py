@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
-from typing import Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import torch
 from torch import nn
@@ -272,9 +272,70 @@ class HelmholtzBRDF(nn.Module):
 
     # ------------------------------------------------------------ properties
     @property
-    def num_coefficients(self) -> int:
+    def num_functions(self) -> int:
         """Number of basis functions ``K`` per channel."""
         return int(self.coefficients.shape[-1])
+
+    @property
+    def num_coefficients(self) -> int:
+        """Alias of :attr:`num_functions` (the earlier name)."""
+        return self.num_functions
+
+    # ------------------------------------------------------------ checkpoints
+    def get_extra_state(self) -> Dict[str, Any]:
+        """The configuration kept in the ``state_dict`` (key ``_extra_state``):
+        ``order``, ``isotropic``, ``channels``, ``learnable``, ``nonnegative``."""
+        return {"version": 1, "order": self.order, "isotropic": self.isotropic, "channels": self.channels,
+                "learnable": self.learnable, "nonnegative": self.nonnegative}
+
+    def set_extra_state(self, state: Dict[str, Any]) -> None:
+        """Check that a checkpoint's configuration matches this module (clear error if not)."""
+        if not isinstance(state, dict) or "order" not in state:
+            raise ValueError(f"HelmholtzBRDF checkpoint extra state is not recognised: {state!r}")
+        mine = self.get_extra_state()
+        diff = [f"{k}={state[k]!r} (module has {mine[k]!r})" for k in ("order", "isotropic", "channels")
+                if k in state and state[k] != mine[k]]
+        if diff:
+            raise ValueError(
+                "checkpoint does not match this HelmholtzBRDF: " + ", ".join(diff)
+                + "; build it with HelmholtzBRDF.from_state_dict(state_dict)"
+            )
+        self.nonnegative = bool(state.get("nonnegative", self.nonnegative))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints from before the configuration was kept load as before (strict mode included)
+        if prefix + "_extra_state" not in state_dict:
+            state_dict[prefix + "_extra_state"] = self.get_extra_state()
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    @classmethod
+    def from_state_dict(cls, state_dict: Dict[str, Any], prefix: str = "", **kwargs: Any) -> "HelmholtzBRDF":
+        """Build a module from a checkpoint without repeating its configuration.
+
+        Args:
+            state_dict: the output of :meth:`state_dict` (of this module, or of a
+                model that holds it, with ``prefix`` such as ``"brdf."``).
+            prefix: key prefix of this module inside ``state_dict``.
+            **kwargs: further constructor arguments (e.g. ``device``).
+
+        Example:
+            >>> m = HelmholtzBRDF(order=2, channels=3, nonnegative=True)
+            >>> m2 = HelmholtzBRDF.from_state_dict(m.state_dict())
+            >>> (m2.order, m2.channels, m2.nonnegative, torch.equal(m2.coefficients, m.coefficients))
+            (2, 3, True, True)
+        """
+        key = prefix + "_extra_state"
+        if key not in state_dict:
+            raise KeyError(f"no {key!r} in the state_dict: it was saved before HelmholtzBRDF kept its "
+                           "configuration; construct the module with its order/isotropic/channels and load it")
+        cfg = dict(state_dict[key])
+        coeffs = state_dict[prefix + "coefficients"]
+        kwargs.setdefault("dtype", coeffs.dtype)
+        m = cls(order=cfg["order"], isotropic=cfg["isotropic"], channels=cfg["channels"], init="zeros",
+                learnable=cfg.get("learnable", True), nonnegative=cfg.get("nonnegative", False), **kwargs)
+        m.load_state_dict({k[len(prefix):]: v for k, v in state_dict.items() if k.startswith(prefix)
+                           and "." not in k[len(prefix):]})
+        return m
 
     @property
     def indices(self) -> torch.Tensor:
@@ -287,7 +348,7 @@ class HelmholtzBRDF(nn.Module):
         kind = "isotropic" if self.isotropic else "anisotropic"
         return (
             f"order={self.order}, {kind}, channels={self.channels}, "
-            f"num_coefficients={self.num_coefficients}, learnable={self.learnable}, "
+            f"num_functions={self.num_functions}, learnable={self.learnable}, "
             f"nonnegative={self.nonnegative}"
         )
 
@@ -309,7 +370,7 @@ class HelmholtzBRDF(nn.Module):
         if coeffs is None:
             return self.coefficients
         check_tensor(coeffs, "coeffs", min_dims=2)
-        k = self.num_coefficients
+        k = self.num_functions
         if coeffs.shape[-1] != k or coeffs.shape[-2] != self.channels:
             raise ValueError(
                 f"`coeffs` must have shape (..., {self.channels}, {k}) (channels, number of basis "

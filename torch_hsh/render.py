@@ -9,7 +9,9 @@ intensity ``e_j``; each pixel has a unit normal ``n`` and its own BRDF ``f``:
     I_{jc} = e_{jc}\, f_c(l_j', v')\, \max(0, n \cdot l_j)\; V_j,
 
 where ``'`` marks the local frame of ``n`` and ``V_j`` is an optional
-visibility (cast-shadow) mask. Attached shadows (``n . l <= 0``) are always
+visibility (cast-shadow) mask; ``render(..., ambient=a)`` replaces it by
+``V_j + a (1 - V_j)`` so that cast shadows stay dim instead of black (a crude
+interreflection / room-light term, off by default). Attached shadows (``n . l <= 0``) are always
 applied; the isotropic basis itself is zero there too.
 
 A BRDF is either
@@ -34,6 +36,7 @@ Shapes everywhere: lights ``(L, 3)``; intensities ``None`` (all ones),
 """
 from __future__ import annotations
 
+import warnings
 from typing import Callable, Optional, Union
 
 import torch
@@ -49,8 +52,10 @@ __all__ = [
     "render",
     "render_coefficients",
     "render_model",
+    "brdf_cosine",
     "add_sensor_noise",
     "quantize",
+    "order_from_num_functions",
     "order_from_num_coefficients",
 ]
 
@@ -68,11 +73,11 @@ def view_direction(like: torch.Tensor) -> torch.Tensor:
     return torch.tensor(VIEW, dtype=like.dtype, device=like.device)
 
 
-def order_from_num_coefficients(k: int) -> int:
+def order_from_num_functions(k: int) -> int:
     """Order ``P`` with ``num_isotropic(P) == k``; ``ValueError`` if there is none.
 
     Example:
-        >>> order_from_num_coefficients(20)
+        >>> order_from_num_functions(20)
         3
     """
     for p in range(0, 41):
@@ -85,6 +90,10 @@ def order_from_num_coefficients(k: int) -> int:
         f"the last axis of the coefficient maps has {k} entries, which is not the size of an isotropic "
         "Helmholtz basis (1, 4, 10, 20, 35, 56, ... = (P+1)(P+2)(P+3)/6)"
     )
+
+
+#: Alias of :func:`order_from_num_functions` (the earlier name).
+order_from_num_coefficients = order_from_num_functions
 
 
 def _check_lights(lights: torch.Tensor, name: str = "lights") -> torch.Tensor:
@@ -181,6 +190,15 @@ def render_coefficients(
         tensor([0.3183, 0.3183, 0.3183])
     """
     check_tensor(coefficients, "coefficients", min_dims=2)
+    img = brdf_cosine(normals, lights, coefficients, view)
+    e = _intensities(intensities, lights.shape[0], coefficients.shape[-2], img)
+    S = normals.shape[:-1]
+    return img * e.reshape(e.shape[0], *([1] * len(S)), e.shape[1])
+
+
+def _check_coefficient_maps(normals: torch.Tensor, coefficients: torch.Tensor) -> int:
+    """Shape/dtype checks of ``(*S, C, K)`` coefficient maps against ``normals``; returns the order."""
+    check_tensor(coefficients, "coefficients", min_dims=2)
     check_dirs(normals, "normals")
     S = normals.shape[:-1]
     if coefficients.shape[:-2] != S:
@@ -189,11 +207,46 @@ def render_coefficients(
             f"got {tuple(coefficients.shape)}"
         )
     check_same([("normals", normals), ("coefficients", coefficients)])
-    order = order_from_num_coefficients(coefficients.shape[-1])
-    Phi = shading_basis(normals, lights, order, view)  # (L, *S, K)
-    img = torch.einsum("l...k,...ck->l...c", Phi, coefficients)
-    e = _intensities(intensities, lights.shape[0], coefficients.shape[-2], img)
-    return img * e.reshape(e.shape[0], *([1] * len(S)), e.shape[1])
+    return order_from_num_functions(coefficients.shape[-1])
+
+
+def brdf_cosine(
+    normals: torch.Tensor,
+    dirs: torch.Tensor,
+    brdf: Union[torch.Tensor, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]],
+    view: Optional[torch.Tensor] = None,
+) -> torch.Tensor:
+    r"""BRDF times cosine, :math:`f(l', v') \max(0, n\cdot l)`, for every incident direction and pixel.
+
+    The BRDF-evaluation piece shared by the point-light renderer and the
+    environment-map reference (:func:`torch_hsh.envmap.render_envmap_reference`).
+
+    Args:
+        normals: ``(*S, 3)``.
+        dirs: ``(L, 3)`` incident directions (toward the light), world frame.
+        brdf: coefficient maps ``(*S, C, K)`` (isotropic Helmholtz; not clamped) or a
+            callable ``f(wi, wo) -> (L, *S, C)`` on local directions.
+        view: optional direction toward the camera (default ``(0, 0, 1)``).
+
+    Returns:
+        ``(L, *S, C)``.
+
+    Example:
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> a = torch.zeros(1, 1, 4); a[..., 0] = 2.0
+        >>> brdf_cosine(n, torch.tensor([[0.0, 0.6, 0.8]]), a)  # 0.8 / pi
+        tensor([[[0.2546]]])
+    """
+    if isinstance(brdf, torch.Tensor):
+        order = _check_coefficient_maps(normals, brdf)
+        Phi = shading_basis(normals, dirs, order, view)  # (L, *S, K)
+        return torch.einsum("l...k,...ck->l...c", Phi, brdf)
+    if callable(brdf):
+        return render_model(normals, dirs, brdf, None, view)
+    raise TypeError(
+        f"`brdf` must be coefficient maps (a tensor of shape (*S, C, K)) or a callable f(wi, wo), "
+        f"got {type(brdf).__name__}"
+    )
 
 
 def render_model(
@@ -289,7 +342,10 @@ def add_sensor_noise(
 
 
 def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> torch.Tensor:
-    """Clip to ``[0, max_value]`` and quantise to ``2**bits - 1`` levels (straight-through gradient).
+    """Clip to ``[0, max_value]`` and round to the ``2**bits`` codes ``0 .. 2**bits - 1`` (straight-through gradient).
+
+    Code ``k`` stands for ``k * max_value / (2**bits - 1)``; halfway values round
+    to the even code (``torch.round``).
 
     Args:
         images: any shape.
@@ -300,8 +356,10 @@ def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> to
         Quantised images in the same units as the input.
 
     Example:
-        >>> quantize(torch.tensor([0.5, 2.0]), bits=1)
-        tensor([1., 1.])
+        >>> quantize(torch.tensor([0.5, 2.0]), bits=1)  # 0.5 is halfway: even code 0; 2.0 saturates
+        tensor([0., 1.])
+        >>> quantize(torch.tensor([0.3, 0.7]), bits=2)  # codes 1 and 2 of 0..3
+        tensor([0.3333, 0.6667])
     """
     check_tensor(images, "images")
     if isinstance(bits, bool) or int(bits) != bits or not 1 <= bits <= 32:
@@ -314,6 +372,16 @@ def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> to
     return x + (q - x).detach()
 
 
+def _renamed(value: float, old_value: Optional[float], name: str, old: str) -> float:
+    """Resolve a renamed keyword: the old name still works, with a DeprecationWarning."""
+    if old_value is None:
+        return value
+    if value != 0.0:
+        raise TypeError(f"pass `{name}` only (`{old}` is its earlier name)")
+    warnings.warn(f"`{old}` is deprecated; use `{name}`", DeprecationWarning, stacklevel=3)
+    return old_value
+
+
 def render(
     normals: torch.Tensor,
     lights: torch.Tensor,
@@ -321,12 +389,16 @@ def render(
     intensities: Optional[torch.Tensor] = None,
     visibility: Optional[torch.Tensor] = None,
     view: Optional[torch.Tensor] = None,
-    read_noise: float = 0.0,
-    shot_noise: float = 0.0,
+    read_std: float = 0.0,
+    shot_gain: float = 0.0,
     seed: Optional[int] = None,
     saturation: Optional[float] = None,
     bits: Optional[int] = None,
     mask: Optional[torch.Tensor] = None,
+    ambient: float = 0.0,
+    *,
+    read_noise: Optional[float] = None,
+    shot_noise: Optional[float] = None,
 ) -> torch.Tensor:
     r"""Render photometric-stereo images (section 7 of the math notes).
 
@@ -340,14 +412,25 @@ def render(
         intensities: ``None`` (ones), ``(L,)`` or ``(L, C)`` light intensities.
         visibility: optional ``(L, *S)`` cast-shadow mask (bool or float in [0, 1]).
         view: optional direction toward the camera (default ``(0, 0, 1)``).
-        read_noise: std of additive Gaussian noise.
-        shot_noise: variance per unit signal of the shot noise.
+        read_std: std of the additive Gaussian read noise (as in
+            :func:`add_sensor_noise`).
+        shot_gain: variance per unit signal of the shot noise (as in
+            :func:`add_sensor_noise`).
         seed: noise seed (reproducible results).
+        read_noise, shot_noise: earlier names of ``read_std`` and
+            ``shot_gain`` (keyword only, deprecated).
         saturation: clip radiance at this level (also the full-scale value for
             quantisation); ``None``: no clipping (quantisation then uses the
             maximum of the rendered images as full scale).
         bits: quantise to this many bits (e.g. 16), after clipping.
         mask: optional ``(*S)`` bool; pixels outside are set to zero.
+        ambient: fraction in ``[0, 1]`` of the unoccluded radiance that still
+            reaches cast-shadowed observations (a crude stand-in for
+            interreflections and room light: a real cast shadow is dim, not
+            black). The visibility factor becomes ``V + ambient (1 - V)``,
+            applied before the noise; attached shadows (``n . l <= 0``) stay
+            zero. No effect without ``visibility``; ``0`` (default) leaves the
+            images unchanged.
 
     Returns:
         ``(L, *S, C)`` images. Negative radiance from a coefficient expansion is
@@ -357,7 +440,7 @@ def render(
     Example:
         >>> n = torch.nn.functional.normalize(torch.randn(5, 3).abs(), dim=-1)
         >>> a = torch.zeros(5, 3, 10); a[..., 0] = 1.0
-        >>> render(n, torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), a, read_noise=0.01, seed=0).shape
+        >>> render(n, torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), a, read_std=0.01, seed=0).shape
         torch.Size([2, 5, 3])
     """
     check_dirs(normals, "normals")
@@ -373,6 +456,8 @@ def render(
             f"got {type(brdf).__name__}"
         )
     S = normals.shape[:-1]
+    if isinstance(ambient, bool) or not isinstance(ambient, (int, float)) or not 0 <= ambient <= 1:
+        raise ValueError(f"`ambient` must be a number in [0, 1], got {ambient!r}")
     if visibility is not None:
         if not isinstance(visibility, torch.Tensor):
             raise TypeError(f"`visibility` must be a torch.Tensor, got {type(visibility).__name__}")
@@ -380,8 +465,13 @@ def render(
             raise ValueError(
                 f"`visibility` must have shape (L, *S) = {(lights.shape[0], *S)}, got {tuple(visibility.shape)}"
             )
-        img = img * visibility.to(img.dtype).unsqueeze(-1)
-    img = add_sensor_noise(img, read_noise, shot_noise, seed)
+        vis = visibility.to(img.dtype)
+        if ambient:
+            vis = vis + ambient * (1 - vis)
+        img = img * vis.unsqueeze(-1)
+    read_std = _renamed(read_std, read_noise, "read_std", "read_noise")
+    shot_gain = _renamed(shot_gain, shot_noise, "shot_gain", "shot_noise")
+    img = add_sensor_noise(img, read_std, shot_gain, seed)
     if saturation is not None:
         if not saturation > 0:
             raise ValueError(f"`saturation` must be > 0, got {saturation}")

@@ -510,6 +510,7 @@ def cast_shadow_mask(
     lights: torch.Tensor,
     pixel_size: float = 1.0,
     n_steps: Optional[int] = None,
+    bias: float = 0.0,
 ) -> torch.Tensor:
     r"""Light visibility of every pixel of a height field (cast shadows), by ray marching.
 
@@ -519,7 +520,7 @@ def cast_shadow_mask(
     ``d row = -l_y / |l_xy|``, row 0 at the top); at step ``k`` the ray is
     ``k * pixel_size * l_z / |l_xy|`` above its start. The pixel is in shadow
     if the bilinearly interpolated height at some step exceeds the ray (by
-    more than a relative tolerance of ``1e-6``). Samples whose bilinear
+    more than a relative tolerance of ``1e-6``, plus ``bias``). Samples whose bilinear
     footprint leaves the image never occlude. The march stops after
     ``ceil((max h - min h) / rise_per_step)`` steps (no occluder can be
     higher), at most the image diagonal, or ``n_steps`` if given.
@@ -539,6 +540,9 @@ def cast_shadow_mask(
         lights: ``(L, 3)`` light directions (normalised here).
         pixel_size: distance between pixel centres.
         n_steps: optional cap on the number of march steps per light.
+        bias: an occluder must rise this much (same unit as ``height``, >= 0)
+            above the ray to count; absorbs noise of a reconstructed height
+            field (default 0: exact).
 
     Returns:
         ``(L, H, W)`` bool, ``True`` where the light is **visible** (lit).
@@ -558,6 +562,8 @@ def cast_shadow_mask(
     ps = _positive(pixel_size, "pixel_size")
     if n_steps is not None:
         n_steps = _count(n_steps, "n_steps", minimum=0)
+    if isinstance(bias, bool) or not isinstance(bias, (int, float)) or not math.isfinite(bias) or bias < 0:
+        raise ValueError(f"`bias` must be a finite number >= 0, got {bias!r}")
     H, W = height.shape
     L = lights.shape[0]
     dev = height.device
@@ -572,7 +578,7 @@ def cast_shadow_mask(
         return vis
     h_min, h_max = float(hgt.min()), float(hgt.max())
     h_range = h_max - h_min
-    tol = 1e-6 * max(1.0, abs(h_min), abs(h_max))
+    tol = 1e-6 * max(1.0, abs(h_min), abs(h_max)) + float(bias)
     cap = math.ceil(math.hypot(H, W))
     if n_steps is not None:
         cap = min(cap, n_steps)
@@ -586,7 +592,7 @@ def cast_shadow_mask(
             continue
         dr, dc = -ly / lxy, lx / lxy
         rise = ps * lz / lxy
-        steps = min(cap, math.ceil(h_range / rise))
+        steps = min(cap, math.ceil(max(h_range - bias, 0.0) / rise))
         if steps <= 0:
             continue
         pad = math.ceil(steps * max(abs(dr), abs(dc))) + 2

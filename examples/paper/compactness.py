@@ -185,7 +185,7 @@ def merl_brdf(path: Path):
     try:
         from torch_hsh.io.merl import read_merl
     except ImportError as e:  # pragma: no cover - depends on the checkout
-        raise SystemExit(f"--merl needs torch_hsh.io.merl.read_merl ({e})")
+        raise SystemExit(f"--merl needs torch_hsh.io.merl.read_merl ({e})") from e
     table = read_merl(path)
 
     def f(wi, wo):

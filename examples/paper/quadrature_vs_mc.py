@@ -21,12 +21,10 @@ Run: ``python examples/paper/quadrature_vs_mc.py`` (about a minute).
 """
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -62,7 +60,7 @@ def main(argv=None):
         ref = project(f, P, basis=bn, n_theta=64, n_phi=128)
         nref = float(ref.norm())
 
-        def err(a):
+        def err(a, ref=ref, nref=nref):
             return float((a - ref).norm()) / nref
 
         for nt in args.reduced_sizes:

@@ -2,7 +2,6 @@
 (alias ``helmholtz_hsh``) and ``helmholtz_anisotropic``."""
 from __future__ import annotations
 
-from functools import lru_cache
 
 import torch
 

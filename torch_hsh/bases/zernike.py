@@ -94,7 +94,7 @@ def _radial_table(u: torch.Tensor, order: int):
     """``(N, L)`` table of R_n^l/rho^l at u = rho^2 and the column map."""
     coeffs = _radial_coeffs(order)
     col = {}
-    cols = []
+    cols: list = []
     for key, cs in coeffs.items():
         acc = torch.full_like(u, cs[-1])
         for c in reversed(cs[:-1]):  # Horner in u

@@ -178,7 +178,7 @@ class BRDFModel(nn.Module, metaclass=abc.ABCMeta):
             t = _as_param(params[name], name, constraint)
             self.register_buffer(name, t, persistent=True)
             shapes.append((name, t.shape if t.dim() > 0 else torch.Size([1])))
-        self._param_shape = broadcast_shapes(shapes)
+        self._param_shape: Tuple[int, ...] = tuple(broadcast_shapes(shapes))
 
     @property
     def num_channels(self) -> int:

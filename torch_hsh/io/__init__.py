@@ -7,6 +7,12 @@ Each format lives in its own submodule, imported below in its own block
     torch_hsh.io.diligent  DiLiGenT-layout photometric-stereo folders (load_diligent, save_diligent)
     torch_hsh.io.exr       OpenEXR images, image stacks, normal / coefficient maps, environment maps
 
+Naming rule: functions on a **folder** are ``load_*`` / ``save_*``
+(``load_diligent``, ``save_diligent``); functions on a **single file** are
+``read_*`` / ``write_*`` (``read_exr``, ``write_merl``, ...). Writers refuse to
+replace existing files unless ``overwrite=True`` and then replace only the
+files they write.
+
 Example:
     >>> from torch_hsh.io import read_merl, write_merl  # doctest: +SKIP
 """

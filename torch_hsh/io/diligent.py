@@ -32,11 +32,13 @@ Image decoding pitfalls (why this module does not use OpenCV, Pillow or plain
   (checked with Pillow 13 / scikit-image 0.26 / imageio 2.38), and cannot write
   16-bit RGB PNGs at all.
 
-16-bit PNGs are therefore decoded with ``kornia_rs`` (a dependency of kornia),
-falling back to a small pure-NumPy PNG decoder in this module if ``kornia_rs``
-is unavailable or fails; PNGs are written by a pure-NumPy encoder and read
-back to verify. 8-bit PNGs are decoded with ``imageio`` (Pillow), which is
-correct for them. Channel order is always RGB.
+PNGs are therefore read and written with ``kornia_rs`` (kornia's Rust
+backend, a declared dependency), which keeps 16 bits exactly; every written
+image is read back and compared with the codes. Palette and grey+alpha files
+(8 bits or fewer, e.g. a mask saved by an image editor) are decoded by Pillow,
+which is exact for them. A file that cannot be decoded raises ``ValueError``
+naming it; nothing falls back silently to another decoder. Channel order is
+always RGB.
 
 8-bit photographs are accepted with a :class:`UserWarning` (they are divided
 by 255 and **not** linearised: DiLiGenT-style data is linear, and an 8-bit
@@ -47,10 +49,9 @@ from __future__ import annotations
 import operator
 import struct
 import warnings
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -60,6 +61,8 @@ __all__ = ["PhotometricDataset", "load_diligent", "save_diligent"]
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 #: Tolerance on | |l| - 1 | for light directions read from a file.
 UNIT_TOLERANCE = 1e-3
+#: Smallest accepted ratio of the third to the first singular value of the light matrix.
+LIGHT_RANK_TOLERANCE = 1e-3
 _FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
@@ -76,142 +79,103 @@ def _png_info(path: Path):
     return width, height, bit_depth, color_type, interlace
 
 
-_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # PNG colour type -> samples per pixel (palette handled by Pillow)
+#: PNG colour type -> (kornia-rs mode, samples per pixel) for the types kornia-rs decodes.
+_KRS_MODES = {0: ("mono", 1), 2: ("rgb", 3), 6: ("rgba", 4)}
+_KRS_MODE_BY_CHANNELS = {1: "mono", 3: "rgb", 4: "rgba"}
 
 
-def _decode_png_numpy(path: Path) -> np.ndarray:
-    """Pure-NumPy PNG decoder for non-interlaced 8/16-bit grey/RGB(A) images.
-
-    Slow on rows using the Paeth / Average filters (a Python loop over the
-    pixels of such rows), so it is only the fallback for ``kornia_rs``.
-    Returns ``(H, W)`` or ``(H, W, C)`` uint8 / uint16 (native byte order).
-    """
-    data = Path(path).read_bytes()
-    if data[:8] != _PNG_SIGNATURE:
-        raise ValueError(f"{path} is not a PNG file (bad signature)")
-    pos, idat, ihdr = 8, [], None
-    while pos + 8 <= len(data):
-        (length,) = struct.unpack(">I", data[pos : pos + 4])
-        ctype = data[pos + 4 : pos + 8]
-        body = data[pos + 8 : pos + 8 + length]
-        if ctype == b"IHDR":
-            ihdr = struct.unpack(">IIBBBBB", body)
-        elif ctype == b"IDAT":
-            idat.append(body)
-        elif ctype == b"IEND":
-            break
-        pos += 12 + length
-    if ihdr is None:
-        raise ValueError(f"{path}: PNG without IHDR chunk")
-    width, height, depth, ctype, _c, _f, interlace = ihdr
-    if interlace or depth not in (8, 16) or ctype not in _CHANNELS:
-        raise ValueError(
-            f"{path}: unsupported PNG variant for the NumPy decoder "
-            f"(bit depth {depth}, colour type {ctype}, interlace {interlace})"
-        )
-    nch = _CHANNELS[ctype]
-    bpp = nch * depth // 8
-    stride = width * bpp
-    raw = np.frombuffer(zlib.decompress(b"".join(idat)), dtype=np.uint8)
-    if raw.size != height * (stride + 1):
-        raise ValueError(f"{path}: corrupt PNG (decompressed {raw.size} bytes, expected {height * (stride + 1)})")
-    raw = raw.reshape(height, stride + 1)
-    out = np.zeros((height, stride), dtype=np.uint8)
-    prev = np.zeros(stride, dtype=np.int32)
-    for r in range(height):
-        ftype = int(raw[r, 0])
-        line = raw[r, 1:].astype(np.int32)
-        if ftype == 0:
-            cur = line
-        elif ftype == 1:  # Sub: cumulative sum along each byte lane of the pixel
-            cur = np.cumsum(line.reshape(width, bpp), axis=0).reshape(-1) & 0xFF
-        elif ftype == 2:  # Up
-            cur = (line + prev) & 0xFF
-        elif ftype in (3, 4):  # Average / Paeth: sequential along the row
-            cur = np.zeros(stride, dtype=np.int32)
-            left = np.zeros(bpp, dtype=np.int32)
-            upleft = np.zeros(bpp, dtype=np.int32)
-            for x in range(width):
-                s = slice(x * bpp, (x + 1) * bpp)
-                up = prev[s]
-                if ftype == 3:
-                    pred = (left + up) >> 1
-                else:
-                    p = left + up - upleft
-                    pa, pb, pc = np.abs(p - left), np.abs(p - up), np.abs(p - upleft)
-                    pred = np.where((pa <= pb) & (pa <= pc), left, np.where(pb <= pc, up, upleft))
-                cur[s] = (line[s] + pred) & 0xFF
-                left, upleft = cur[s], up
-        else:
-            raise ValueError(f"{path}: corrupt PNG (filter type {ftype} in row {r})")
-        out[r] = cur
-        prev = cur
-    if depth == 16:
-        img = out.view(">u2").astype(np.uint16)
-    else:
-        img = out
-    img = img.reshape(height, width, nch)
-    return img[..., 0] if nch == 1 else img
+def _kornia_rs_png(kind: str, depth: int):
+    """``kornia_rs`` PNG function ``{kind}_image_png_u{depth}`` (top level up to 0.1.11, ``kornia_rs.io`` later)."""
+    try:
+        import kornia_rs
+    except ImportError as err:  # a declared dependency: say so instead of degrading
+        raise ImportError(
+            "torch_hsh.io.diligent needs kornia-rs >= 0.1.9 for PNG files (pip install 'kornia-rs>=0.1.9')"
+        ) from err
+    name = f"{kind}_image_png_u{depth}"
+    for mod in (getattr(kornia_rs, "io", None), kornia_rs):
+        fn = getattr(mod, name, None)
+        if fn is not None:
+            return fn
+    raise ImportError(
+        f"kornia_rs {getattr(kornia_rs, '__version__', '?')} has no {name}; torch_hsh needs kornia-rs >= 0.1.9"
+    )
 
 
 def _read_png(path: Path) -> np.ndarray:
-    """Decode a PNG keeping its bit depth: (H, W) or (H, W, C) uint8/uint16, RGB order."""
+    """Decode a PNG keeping its bit depth: (H, W) or (H, W, C) uint8/uint16, RGB order.
+
+    Grey, RGB and RGBA files at 8 or 16 bits are decoded by ``kornia_rs``
+    (bit-exact); palette, grey+alpha and sub-8-bit files (8 bits or fewer,
+    where Pillow is exact) by Pillow. A file that cannot be decoded raises
+    ``ValueError`` naming it; there is no fallback decoder.
+    """
+    path = Path(path)
     width, height, depth, ctype, _interlace = _png_info(path)
-    if depth == 16:
-        img = None
+    if depth in (8, 16) and ctype in _KRS_MODES:
+        mode, nch = _KRS_MODES[ctype]
+        read = _kornia_rs_png("read", depth)
         try:
-            import kornia_rs
+            img = np.asarray(read(str(path), mode))
+        except Exception as err:  # kornia_rs raises plain Exception / ValueError / OSError
+            raise ValueError(f"{path}: cannot decode the {depth}-bit PNG ({err})") from err
+        want = np.uint16 if depth == 16 else np.uint8
+        if img.dtype != want or img.size != height * width * nch:
+            raise ValueError(f"{path}: decoded {img.dtype} array of shape {img.shape}, expected "
+                             f"{height}x{width}x{nch} {np.dtype(want).name} from the PNG header")
+        img = img.reshape(height, width, nch)
+        return img[..., 0] if nch == 1 else img
+    if depth == 16:
+        raise ValueError(f"{path}: unsupported 16-bit PNG colour type {ctype} (use grey, RGB or RGBA)")
+    from PIL import Image
 
-            img = np.asarray(kornia_rs.io.read_image(str(path)))
-        except Exception:  # kornia_rs missing, too old, or unable to decode: use our decoder
-            img = None
-        if img is None or img.dtype != np.uint16 or img.shape[:2] != (height, width):
-            img = _decode_png_numpy(path)
-        if img.ndim == 3 and img.shape[2] == 1:
-            img = img[..., 0]
-        return img
-    import imageio.v3 as iio
-
-    img = np.asarray(iio.imread(path))
+    try:
+        with Image.open(path) as opened:
+            conv = opened.convert("RGB") if ctype == 3 else (opened.convert("L") if ctype == 0 else opened)
+            img = np.asarray(conv)
+    except Exception as err:
+        raise ValueError(f"{path}: cannot decode the PNG ({err})") from err
+    if img.dtype == bool:
+        img = img.astype(np.uint8) * 255
     if img.shape[:2] != (height, width):
         raise ValueError(f"{path}: decoded shape {img.shape} does not match the PNG header {height}x{width}")
     return img
 
 
-def _png_chunk(ctype: bytes, body: bytes) -> bytes:
-    crc = zlib.crc32(ctype + body) & 0xFFFFFFFF
-    return struct.pack(">I", len(body)) + ctype + body + struct.pack(">I", crc)
-
-
 def _write_png(path: Path, img: np.ndarray) -> None:
-    """Write a (H, W) / (H, W, 1|3|4) uint8 or uint16 array as a PNG (Sub filter, zlib)."""
+    """Write a (H, W) / (H, W, 1|3|4) uint8 or uint16 array as a PNG with ``kornia_rs``."""
     if img.dtype not in (np.uint8, np.uint16):
         raise TypeError(f"PNG data must be uint8 or uint16, got {img.dtype}")
     if img.ndim == 2:
         img = img[..., None]
-    height, width, nch = img.shape
-    ctype = {1: 0, 2: 4, 3: 2, 4: 6}[nch]
+    if img.ndim != 3 or img.shape[2] not in _KRS_MODE_BY_CHANNELS:
+        raise ValueError(f"PNG data must have shape (H, W) or (H, W, 1|3|4), got {img.shape}")
     depth = 16 if img.dtype == np.uint16 else 8
-    bpp = nch * depth // 8
-    rows = np.ascontiguousarray(img.astype(">u2") if depth == 16 else img).view(np.uint8).reshape(height, width * bpp)
-    filt = rows.astype(np.int16)
-    filt[:, bpp:] -= rows[:, :-bpp]
-    lines = np.empty((height, width * bpp + 1), dtype=np.uint8)
-    lines[:, 0] = 1  # Sub filter
-    lines[:, 1:] = (filt & 0xFF).astype(np.uint8)
-    ihdr = struct.pack(">IIBBBBB", width, height, depth, ctype, 0, 0, 0)
-    payload = _PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr)
-    payload += _png_chunk(b"IDAT", zlib.compress(lines.tobytes(), 6)) + _png_chunk(b"IEND", b"")
-    Path(path).write_bytes(payload)
+    write = _kornia_rs_png("write", depth)
+    try:
+        write(str(path), np.ascontiguousarray(img), _KRS_MODE_BY_CHANNELS[img.shape[2]])
+    except Exception as err:
+        raise OSError(f"{path}: cannot write the {depth}-bit PNG ({err})") from err
 
 
 # --------------------------------------------------------------------------- #
 # text helpers
 # --------------------------------------------------------------------------- #
+def _read_text(path: Path, what: str) -> str:
+    """Text of ``path``; a binary or non-UTF-8 file raises ``ValueError`` naming it."""
+    data = path.read_bytes()
+    if b"\x00" in data:
+        raise ValueError(f"{path}: binary file (NUL bytes), expected a text file of {what}")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: not a UTF-8 text file of {what} ({err.reason} at byte {err.start})") from None
+
+
 def _read_rows(path: Path, what: str) -> np.ndarray:
     """Parse an N x 3 whitespace (or comma) separated text file of floats."""
     rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    for lineno, line in enumerate(_read_text(path, what + " rows").splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -228,6 +192,43 @@ def _read_rows(path: Path, what: str) -> np.ndarray:
     if not rows:
         raise ValueError(f"{path}: no {what} rows found")
     return np.asarray(rows, dtype=np.float64)
+
+
+def _read_names(path: Path) -> List[str]:
+    """Image names of ``filenames.txt``: relative paths inside the folder, each listed once."""
+    names: List[str] = []
+    first_line: Dict[str, int] = {}
+    for lineno, line in enumerate(_read_text(path, "image names").splitlines(), start=1):
+        name = line.strip()
+        if not name:
+            continue
+        parts = Path(name.replace("\\", "/")).parts
+        if Path(name).is_absolute() or name.startswith(("/", "\\")) or ".." in parts:
+            raise ValueError(f"{path} line {lineno}: image name {name!r} points outside the folder")
+        if name in first_line:
+            raise ValueError(f"{path} line {lineno}: image name {name!r} repeats line {first_line[name]}")
+        first_line[name] = lineno
+        names.append(name)
+    return names
+
+
+def _check_light_geometry(lights: np.ndarray, source, first_row: int, check_rank: bool = True) -> None:
+    """Reject lights below the horizon (z <= 0) and sets of rank < 3 (one direction, or coplanar)."""
+    below = np.nonzero(lights[:, 2] <= 0)[0]
+    if below.size:
+        raise ValueError(
+            f"{source}: light direction row {int(below[0]) + first_row} has z = {lights[below[0], 2]:.6g} <= 0 "
+            f"(below the horizon; z points toward the camera); {below.size} such row(s)"
+        )
+    if not check_rank:
+        return
+    sv = np.linalg.svd(lights, compute_uv=False)
+    if lights.shape[0] < 3 or sv[2] < LIGHT_RANK_TOLERANCE * sv[0]:
+        raise ValueError(
+            f"{source}: the {lights.shape[0]} light directions span fewer than 3 dimensions (singular values "
+            f"{', '.join(f'{v:.3g}' for v in sv)}): all identical or coplanar (e.g. with the view), so normals "
+            "cannot be recovered; photometric stereo needs at least 3 non-coplanar lights"
+        )
 
 
 def _is_aux_picture(name: str) -> bool:
@@ -310,6 +311,7 @@ def load_diligent(
     drop_first: int = 0,
     normalize_intensities: bool = True,
     max_images: Optional[int] = None,
+    check_lights: bool = True,
 ) -> PhotometricDataset:
     r"""Load a photometric-stereo folder in the DiLiGenT layout.
 
@@ -324,6 +326,11 @@ def load_diligent(
         normalize_intensities: divide image ``i`` channel ``c`` by
             ``intensities[i, c]``.
         max_images: keep at most this many images (after ``drop_first``).
+        check_lights: reject kept light sets of rank < 3 (all directions
+            identical, or coplanar, e.g. with the view), from which normals
+            cannot be recovered. Pass ``False`` to load fewer than three
+            images, e.g. held-out views. Lights below the horizon
+            (``z <= 0``) are rejected either way.
 
     Returns:
         :class:`PhotometricDataset` with ``images`` ``(L, H, W, 3)``,
@@ -339,7 +346,11 @@ def load_diligent(
 
     Raises:
         FileNotFoundError: missing folder, ``light_directions.txt`` or image.
-        ValueError: malformed / non-unit direction rows, count mismatches
+        ValueError: malformed / non-unit direction rows, lights below the
+            horizon (``z <= 0``) or of rank < 3 (identical or coplanar),
+            binary text files, ``filenames.txt`` entries that leave the
+            folder or repeat, undecodable PNG or ``Normal_gt.mat`` files
+            (the message names the file), count mismatches
             between images, directions, intensities and names, images of
             different sizes or not RGB, mask or normals of the wrong size.
 
@@ -350,7 +361,7 @@ def load_diligent(
     """
     if dtype not in _FLOAT_DTYPES:
         raise TypeError(f"`dtype` must be torch.float32 or torch.float64, got {dtype}")
-    drop_first = _check_count(drop_first, "drop_first")
+    drop_first = int(_check_count(drop_first, "drop_first") or 0)
     max_images = _check_count(max_images, "max_images", allow_none=True)
     folder = Path(path)
     if not folder.is_dir():
@@ -385,7 +396,7 @@ def load_diligent(
 
     names_file = folder / "filenames.txt"
     if names_file.is_file():
-        names = [ln.strip() for ln in names_file.read_text().splitlines() if ln.strip()]
+        names = _read_names(names_file)
         source = "filenames.txt"
     else:
         names = sorted(p.name for p in folder.glob("*.png") if not _is_aux_picture(p.name))
@@ -397,8 +408,9 @@ def load_diligent(
     names, lights, intens = names[sel], lights[sel], intens[sel]
     if len(names) == 0:
         raise ValueError(f"{folder}: no images left after drop_first={drop_first}, max_images={max_images}")
+    _check_light_geometry(lights, ldir_file, first_row=drop_first + 1, check_rank=check_lights)
 
-    images = None
+    images: Optional[np.ndarray] = None
     depth0 = None
     for i, name in enumerate(names):
         f = folder / name
@@ -425,6 +437,7 @@ def load_diligent(
         elif depth != depth0:
             raise ValueError(f"{f}: bit depth {depth} differs from the first image's {depth0}")
         images[i] = img
+    assert images is not None  # at least one name (checked above)
     images /= 65535.0 if depth0 == 16 else 255.0
     if normalize_intensities:
         images /= intens[:, None, None, :].astype(images.dtype)
@@ -447,13 +460,21 @@ def load_diligent(
     if ngt_file.is_file():
         import scipy.io
 
-        mat = scipy.io.loadmat(str(ngt_file))
+        try:
+            mat = scipy.io.loadmat(str(ngt_file))
+        except Exception as err:  # scipy raises ValueError / IndexError / TypeError on corrupt files
+            raise ValueError(f"{ngt_file}: cannot read the MATLAB file ({type(err).__name__}: {err})") from err
         if "Normal_gt" not in mat:
             keys = [k for k in mat if not k.startswith("__")]
             raise ValueError(f"{ngt_file}: no variable 'Normal_gt' (found {keys})")
-        normals = np.asarray(mat["Normal_gt"], dtype=np.float64)
+        try:
+            normals = np.asarray(mat["Normal_gt"], dtype=np.float64)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{ngt_file}: Normal_gt is not a numeric array ({err})") from err
         if normals.shape != (height, width, 3):
             raise ValueError(f"{ngt_file}: Normal_gt has shape {normals.shape}, expected {(height, width, 3)}")
+        if not np.isfinite(normals[mask]).all():
+            raise ValueError(f"{ngt_file}: Normal_gt has NaN or Inf values inside the mask")
 
     def t(a):
         return torch.as_tensor(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
@@ -493,7 +514,10 @@ def save_diligent(
 
     Args:
         path: output folder (created; must be empty or absent unless
-            ``overwrite=True``, in which case same-named files are replaced).
+            ``overwrite=True``, in which case the files this call writes are
+            replaced and nothing else is touched; a ``Normal_gt.mat`` that
+            this call would not replace, because ``normals_gt`` is ``None``,
+            raises ``FileExistsError``).
         images: ``(L, H, W, 3)`` non-negative linear RGB images **as if lit by
             unit-intensity lights** (what :func:`load_diligent` returns with
             ``normalize_intensities=True``).
@@ -548,6 +572,7 @@ def save_diligent(
     if (norms < 1e-12).any():
         raise ValueError(f"`lights` row {int(np.argmin(norms))} is a zero vector")
     lights = lights / norms[:, None]
+    _check_light_geometry(lights, "`lights`", first_row=1, check_rank=False)
     if intensities is None:
         intensities = np.ones((n, 3))
     else:
@@ -604,15 +629,22 @@ def save_diligent(
         raise ValueError(f"`path` {folder} exists and is not a folder")
     if folder.is_dir() and any(folder.iterdir()) and not overwrite:
         raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
+    if normals_gt is None and (folder / "Normal_gt.mat").exists():
+        # it would be read back as the ground truth of these images, and it is not ours to delete
+        raise FileExistsError(
+            f"{folder / 'Normal_gt.mat'} exists and this call writes no normals_gt; remove it or pass normals_gt"
+        )
     folder.mkdir(parents=True, exist_ok=True)
 
-    for i, name in enumerate(names):
-        f = folder / name
-        _write_png(f, codes[i])
+    def write_checked(f: Path, data: np.ndarray) -> None:
+        _write_png(f, data)
         back = _read_png(f)
-        if back.dtype != codes.dtype or not np.array_equal(back, codes[i]):
+        if back.dtype != data.dtype or not np.array_equal(back, data):
             raise RuntimeError(f"{f}: PNG read-back differs from the written {bit_depth}-bit data")
-    _write_png(folder / "mask.png", mask.astype(np.uint8) * 255)
+
+    for i, name in enumerate(names):
+        write_checked(folder / name, codes[i])
+    write_checked(folder / "mask.png", mask.astype(np.uint8) * 255)
     (folder / "filenames.txt").write_text("".join(s + "\n" for s in names))
     np.savetxt(folder / "light_directions.txt", lights, fmt="%.17g", delimiter=" ")
     np.savetxt(folder / "light_intensities.txt", intensities * scale, fmt="%.17g", delimiter=" ")
@@ -620,6 +652,4 @@ def save_diligent(
         import scipy.io
 
         scipy.io.savemat(str(folder / "Normal_gt.mat"), {"Normal_gt": normals_gt})
-    elif overwrite and (folder / "Normal_gt.mat").exists():
-        (folder / "Normal_gt.mat").unlink()
     return folder

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -85,7 +85,7 @@ def _suffixes(name: str, c: int) -> List[str]:
     return [f"{k:0{width}d}" for k in range(c)]
 
 
-def write_exr(path, channels: Dict[str, object], half: bool = False, overwrite: bool = False, header=None) -> Path:
+def write_exr(path, channels: Mapping[str, Any], half: bool = False, overwrite: bool = False, header=None) -> Path:
     r"""Write named channels to a single-part OpenEXR file.
 
     Args:
@@ -153,15 +153,23 @@ def write_exr(path, channels: Dict[str, object], half: bool = False, overwrite: 
     return path
 
 
-def _read_file(path, what="EXR file"):
+def _open(path, what: str, **kwargs):
+    """``OpenEXR.File`` with every failure (corrupt, truncated) as a ``ValueError`` naming the file."""
     OpenEXR = _openexr()
     path = Path(path)
     _check_existing(path, what)
     try:
-        f = OpenEXR.File(str(path), separate_channels=True)
+        f = OpenEXR.File(str(path), **kwargs)
+        n_parts = len(f.parts)
     except Exception as e:
         raise ValueError(f"could not read OpenEXR file {path}: {e}") from e
+    if n_parts == 0:  # the bindings swallow pixel-read errors and return a file without parts
+        raise ValueError(f"could not read OpenEXR file {path}: corrupt or truncated pixel data")
     return f
+
+
+def _read_file(path, what="EXR file"):
+    return _open(path, what, separate_channels=True)
 
 
 def read_exr(path) -> Dict[str, np.ndarray]:
@@ -189,10 +197,7 @@ def read_exr(path) -> Dict[str, np.ndarray]:
 
 
 def _read_header(path) -> dict:
-    OpenEXR = _openexr()
-    path = Path(path)
-    _check_existing(path, "EXR file")
-    with OpenEXR.File(str(path), header_only=True) as f:
+    with _open(path, "EXR file", header_only=True) as f:
         return dict(f.header())
 
 
@@ -345,7 +350,7 @@ def read_envmap(path) -> np.ndarray:
     r"""Read an RGB (latitude-longitude) environment map as ``(H, W, 3)`` float32.
 
     Accepts bare ``R, G, B`` channels (the usual layout, also of
-    ``/work/shared/data/envmaps``) or a single layer ``layer.R/G/B``; an
+    ``../shared/data/envmaps``) or a single layer ``layer.R/G/B``; an
     alpha channel is ignored. Row 0 is the top (zenith) in the usual
     convention; no remapping is done here.
 

@@ -237,10 +237,10 @@ def _table_to_raw(table: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
 class MERLBRDF(nn.Module):
     r"""A tabulated isotropic BRDF on the MERL half/difference grid.
 
-    Attributes (buffers):
-        raw: ``(3, N_th, N_td, N_pd)`` float64 values as stored in the file
-            (negative = not measured). Writing keeps them bit-exact.
-        scale: ``(3,)`` per-channel factors (:data:`MERL_SCALE` by default).
+    Attributes:
+        raw: buffer ``(3, N_th, N_td, N_pd)``, float64 values as stored in the
+            file (negative = not measured). Writing keeps them bit-exact.
+        scale: buffer ``(3,)``, per-channel factors (:data:`MERL_SCALE` by default).
 
     Calling ``brdf(wi, wo)`` with local directions ``(..., 3)`` returns
     ``(..., 3)`` RGB BRDF values in the dtype of the directions:
@@ -273,6 +273,9 @@ class MERLBRDF(nn.Module):
         [1.0, 1.15, 1.66]
     """
 
+    raw: torch.Tensor
+    scale: torch.Tensor
+
     def __init__(self, raw, scale=MERL_SCALE, interpolation: str = "nearest", unmeasured: str = "zero") -> None:
         super().__init__()
         raw = _as_table(raw, "raw").to(torch.float64)
@@ -301,7 +304,8 @@ class MERLBRDF(nn.Module):
     @property
     def shape(self) -> Tuple[int, int, int]:
         """Bin counts ``(N_th, N_td, N_pd)``."""
-        return tuple(self.raw.shape[1:])
+        n_th, n_td, n_pd = self.raw.shape[1:]
+        return int(n_th), int(n_td), int(n_pd)
 
     @property
     def table(self) -> torch.Tensor:
@@ -474,6 +478,20 @@ def read_merl(path: PathLike, interpolation: str = "nearest", unmeasured: str = 
     return MERLBRDF(raw, interpolation=interpolation, unmeasured=unmeasured)
 
 
+def _current_umask() -> int:
+    """The process umask (read from /proc where possible, else set and restored)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def write_merl(path: PathLike, table_or_brdf, overwrite: bool = False, scale=MERL_SCALE) -> pathlib.Path:
     """Write a MERL ``.binary`` file.
 
@@ -515,11 +533,14 @@ def write_merl(path: PathLike, table_or_brdf, overwrite: bool = False, scale=MER
     header = np.asarray(raw.shape[1:], dtype="<i4")
     data = raw.cpu().numpy().astype("<f8", copy=False)
     folder = p.parent if str(p.parent) else pathlib.Path(".")
+    # mkstemp creates 0600; give the file the mode open() would (umask, or the replaced file's mode)
+    mode = (p.stat().st_mode & 0o7777) if p.exists() else (0o666 & ~_current_umask())
     fd, tmp = tempfile.mkstemp(prefix=".merl-", suffix=".tmp", dir=folder)
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(header.tobytes())
             fh.write(np.ascontiguousarray(data).tobytes())
+        os.chmod(tmp, mode)
         os.replace(tmp, p)
     except BaseException:
         if os.path.exists(tmp):

@@ -99,7 +99,7 @@ def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge
                 live = res[w0 > 0]
                 scale = max(float(1.4826 * live.median()) if live.numel() else 1.0, 1e-12)
             w = cauchy_weights(res, w0, scale, c)
-        n, _ = lm_normals(MixedDesign(B, lights, order), yT, w, rd, n, lm_iter, fd_step(y.dtype))
+        n, _, _ = lm_normals(MixedDesign(B, lights, order), yT, w, rd, n, lm_iter, fd_step(y.dtype))
     return B, scale, n
 
 

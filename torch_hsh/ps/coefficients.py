@@ -21,7 +21,10 @@ from .optim import PixelProblem
 from .refinement import Refinement
 from .settings import Settings
 
-__all__ = ["Coefficients", "fit_coefficients", "final_coefficients"]
+__all__ = ["Coefficients", "fit_coefficients", "final_coefficients", "COEFFICIENT_CHUNK"]
+
+#: Largest number of pixels per chunk of the final coefficient fit.
+COEFFICIENT_CHUNK = 2048
 
 
 
@@ -84,9 +87,12 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
     profile = ridge_profile(cfg.order, dt, dev)
     coefs = torch.empty(P, C, K, dtype=dt, device=dev)
     resid = torch.empty(P, dtype=dt, device=dev)
+    # the safeguard's stacked designs (lights + 48 virtual lights, float64) are the largest
+    # temporaries of the solve: a smaller chunk than the refinement's bounds them
+    step = min(cfg.chunk_size, COEFFICIENT_CHUNK)
     with torch.no_grad():
-        for s in range(0, P, cfg.chunk_size):
-            sl = slice(s, min(P, s + cfg.chunk_size))
+        for s in range(0, P, step):
+            sl = slice(s, min(P, s + step))
             n = ref.normals[sl]
             ch = PixelProblem(d.y[sl].to(dt), ref.fit_weights[sl].to(dt), d.lights, view, cfg.order, profile, cfg.ridge)
             Phi = ch.design(n)

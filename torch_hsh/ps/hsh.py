@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Optional, Sequence, Union
+from typing import Dict, Optional, Sequence, Union
 
 import torch
 
@@ -97,6 +97,8 @@ def solve_hsh(
     seed: int = 0,
     progress: bool = False,
     valid: Optional[torch.Tensor] = None,
+    cast_shadows: int = 0,
+    shadow_bias: float = 0.25,
 ) -> HSHResult:
     r"""Photometric stereo with isotropic Helmholtz HSH BRDFs.
 
@@ -179,6 +181,12 @@ def solve_hsh(
             observation (for example one known to be in a cast shadow). Non-finite
             and negative observations are always excluded; an excluded
             observation never influences another pixel.
+        cast_shadows: rounds of the cast-shadow loop (default 0: off): integrate
+            the normals, march the lights over the depth, mark the occluded
+            observations invalid, solve again (see :mod:`torch_hsh.ps.shadows`;
+            needs ``(L, H, W, C)`` images).
+        shadow_bias: height in pixels an occluder must rise above a light ray
+            to cast a shadow in that loop (depth-noise margin).
 
     Real captures: the solver runs at unit brightness (the images are divided
     by a power of two near their median), so the normals do not depend on the
@@ -204,6 +212,16 @@ def solve_hsh(
         >>> res.normals.shape, res.coefficients.shape  # doctest: +SKIP
         (torch.Size([64, 64, 3]), torch.Size([64, 64, 3, 20]))
     """
+    if cast_shadows:
+        from .shadows import shadow_loop
+
+        kw = dict(intensities=intensities, order=order, materials=materials, ridge=ridge, search_angles=search_angles,
+                  search_azimuths=search_azimuths, max_iter=max_iter, robust=robust, robust_iters=robust_iters,
+                  calibration_pixels=calibration_pixels, calibration_rounds=calibration_rounds,
+                  calibration_starts=calibration_starts, dark_fraction=dark_fraction, noise_sigma=noise_sigma,
+                  saturation=saturation, nonneg=nonneg, chunk_size=chunk_size, dtype=dtype, work_dtype=work_dtype,
+                  seed=seed, progress=progress)
+        return shadow_loop(solve_hsh, images, lights, mask, valid, cast_shadows, shadow_bias, init, **kw)
     t_start = time.perf_counter()
     cfg = Settings.validated(
         order, materials, ridge, search_angles, search_azimuths, max_iter, robust, robust_iters, calibration_pixels,
@@ -241,15 +259,31 @@ class _StageClock:
 
     def __init__(self, t0: float):
         self.t = t0
-        self.laps = {}
+        self.laps: Dict[str, float] = {}
+        self.rss: Dict[str, Optional[float]] = {}
 
     def lap(self, name: str) -> None:
         now = time.perf_counter()
         self.laps[name] = now - self.t
         self.t = now
+        self.rss[name] = _peak_rss_mb()
 
     def info(self):
-        return {f"time_{k}_s": v for k, v in self.laps.items()}
+        out = {f"time_{k}_s": v for k, v in self.laps.items()}
+        out.update({f"peak_rss_after_{k}_mb": v for k, v in self.rss.items() if v is not None})
+        return out
+
+
+def _peak_rss_mb() -> Optional[float]:
+    """Peak resident set size of the process so far, MB (None where ``resource`` is unavailable)."""
+    try:
+        import resource
+        import sys
+
+        r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return r / (2**20 if sys.platform == "darwin" else 1024.0)
+    except (ImportError, OSError):
+        return None
 
 
 #: A pixel needs this many valid observations for the HSH model; with fewer it
@@ -269,8 +303,11 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     scale_c = cal.scale if cal is not None else float(fit.residual.median())
     conf = confidence(ref.weights, fit.residual, scale_c, cfg.order, cfg.cauchy_c)
     conf = torch.where(bad, torch.zeros_like(conf), conf)
+    # the observations are no longer needed: release the largest buffers before the output maps exist
+    obs.data.y = obs.data.y.new_empty(0)
+    obs.weights = obs.weights.new_empty(0)
     s = obs.scale  # the solver ran at unit brightness: coefficients are linear in the images
-    coefs = fit.coefficients * s
+    coefs = fit.coefficients.mul_(s)
     albedo = directional_albedo_view(coefs, normals[:, 2])
     info["lm_iterations"] = float(ref.iterations)
     info["chunks"] = float(ref.chunks)

@@ -355,7 +355,7 @@ class Observations:
 
 
 #: Pixels per chunk of the stage-1 passes (bounded temporaries).
-_CHUNK = 65536
+_CHUNK = 16384
 
 
 def observe(

@@ -109,20 +109,23 @@ def reduced_cost(Psi, w, y, rd):
     return (w.unsqueeze(1) * e * e).sum((-1, -2)) + (rd.unsqueeze(-1) * W * W).sum((-1, -2)), W
 
 
-def lm_normals(design: MixedDesign, y, w, rd, n, iters: int, h: float, max_step: float = 0.35, tol: float = 1e-6):
+def lm_normals(design: MixedDesign, y, w, rd, n, iters: int, h: float, max_step: float = 0.35, tol: float = 1e-6,
+               Psi=None):
     """Levenberg–Marquardt on the variable-projection cost of the normals (tangent parametrisation).
 
     ``y (p, C, L)``, ``w (p, L)`` fixed weights, ``rd (p, M)`` ridge on the
     mixing weights, ``n (p, 3)`` start. The Jacobian of the reduced residual
     (Golub–Pereyra, exact given ``dPsi``) uses forward differences of the
     design along two tangents; the design at the current normals is cached, so
-    one iteration costs three design evaluations.
+    one iteration costs three design evaluations. ``Psi`` is the design at ``n``
+    if the caller has it. Returns the normals, the iterations used and the
+    design at the returned normals.
     """
     p = n.shape[0]
     n = n.clone()
     if iters <= 0 or p == 0:
-        return n, 0
-    Psi = design(n)
+        return n, 0, (design(n) if Psi is None else Psi)
+    Psi = design(n) if Psi is None else Psi.clone()
     cost, _ = reduced_cost(Psi, w, y, rd)
     mu = torch.full((p,), 1e-3, dtype=n.dtype, device=n.device)
     active = torch.ones(p, dtype=torch.bool, device=n.device)
@@ -176,7 +179,7 @@ def lm_normals(design: MixedDesign, y, w, rd, n, iters: int, h: float, max_step:
         small = dn.squeeze(-1) < tol
         done = (acc & (small | (rel < 1e-10))) | (~acc & ((mu_i >= 1e8) | small))
         active[idx[done]] = False
-    return n, used
+    return n, used, Psi
 
 
 class PixelProblem:

@@ -98,15 +98,17 @@ def refine_shared_chunk(B, y, w0, n, lights, order, scale, c, iters, irls, searc
         yi, ni, Pi = yd[idx], nd[idx], Psi[idx]
         wi, _ = irls_weights(Pi, yi, w[idx], w0d[idx], scale, c, irls)
         rd = _ridge_diag(Pi, wi, 1e-4)
-        if it == 0:
+        searched = it == 0 and len(search_angles) > 0 and search_azimuths > 0
+        if searched:
             ni = cone_search(
-                ni, lambda m: reduced_cost(des(m), wi, yi, rd)[0], search_angles, search_azimuths,
+                ni, lambda m, wi=wi, yi=yi, rd=rd: reduced_cost(des(m), wi, yi, rd)[0], search_angles, search_azimuths,
                 base_cost=reduced_cost(Pi, wi, yi, rd)[0],
             )
-        n_new, _ = lm_normals(des, yi, wi, rd, ni, 1, h)
+        # the design at the current normals is known unless the search moved them
+        n_new, _, P_new = lm_normals(des, yi, wi, rd, ni, 1, h, Psi=None if searched else Pi)
         step = (n_new - nd[idx]).norm(dim=-1)
         nd[idx] = n_new
-        Psi[idx] = des(n_new)
+        Psi[idx] = P_new
         w[idx] = wi
         if it >= 2:
             active[idx[step < step_tol]] = False

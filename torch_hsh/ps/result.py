@@ -21,6 +21,10 @@ from .observations import prepare_inputs
 __all__ = ["HSHResult", "HoldoutResult", "directional_albedo_view", "holdout_evaluation"]
 
 
+_SAVE_FORMAT = "torch_hsh.HSHResult"
+_SAVE_VERSION = 1
+
+
 @dataclass
 class HSHResult:
     """Output of :func:`solve_hsh`.
@@ -63,6 +67,100 @@ class HSHResult:
     basis_brdfs: Optional[torch.Tensor] = None
     mixing: Optional[torch.Tensor] = None
     confidence: Optional[torch.Tensor] = None
+
+    def save(self, path, channels: Optional[Sequence[str]] = None, weights: bool = False,
+             overwrite: bool = False) -> None:
+        """Write the result to one ``.npz`` file with a versioned JSON metadata entry.
+
+        Stored: ``normals``, ``coefficients`` (with named channels), ``albedo``,
+        ``residual``, ``mask``, ``lights``, ``confidence``, ``basis_brdfs`` and
+        ``mixing`` where they exist, and ``weights`` only if ``weights=True``
+        (``(*S, L)``, the largest array); ``order``, ``info`` and ``runtime_s`` go
+        into the metadata.
+
+        Args:
+            path: target file (``.npz`` is appended if missing).
+            channels: names of the coefficient channels (default ``R, G, B`` for 3
+                channels, ``Y`` for 1, else ``c0, c1, ...``).
+            weights: also store the robust weight maps.
+            overwrite: replace an existing file (default: refuse).
+
+        Example:
+            >>> res.save("bunny_result.npz")  # doctest: +SKIP
+            >>> HSHResult.load("bunny_result.npz").normals.shape  # doctest: +SKIP
+            torch.Size([256, 256, 3])
+        """
+        import json
+        from pathlib import Path
+
+        import numpy as np
+
+        p = Path(path)
+        if p.suffix != ".npz":
+            p = p.with_name(p.name + ".npz")
+        if p.exists() and not overwrite:
+            raise FileExistsError(f"{p} exists; pass overwrite=True to replace it")
+        C = self.coefficients.shape[-2]
+        if channels is None:
+            channels = ["R", "G", "B"] if C == 3 else (["Y"] if C == 1 else [f"c{i}" for i in range(C)])
+        channels = [str(c) for c in channels]
+        if len(channels) != C:
+            raise ValueError(f"`channels` must name the {C} coefficient channels, got {channels}")
+        arrays = {}
+        for name in ("normals", "coefficients", "albedo", "residual", "mask", "lights", "confidence", "basis_brdfs",
+                     "mixing") + (("weights",) if weights else ()):
+            v = getattr(self, name)
+            if v is not None:
+                arrays[name] = v.detach().cpu().numpy()
+
+        def _plain(v):
+            if isinstance(v, float) and not math.isfinite(v):
+                return None
+            if isinstance(v, (list, tuple)):
+                return [_plain(x) for x in v]
+            return v if isinstance(v, (int, float, str, bool)) or v is None else str(v)
+
+        meta = {"format": _SAVE_FORMAT, "version": _SAVE_VERSION, "order": int(self.order), "channels": channels,
+                "runtime_s": float(self.runtime_s), "info": {k: _plain(v) for k, v in self.info.items()}}
+        arrays["metadata"] = np.frombuffer(json.dumps(meta, allow_nan=False).encode("utf-8"), dtype=np.uint8)
+        tmp = p.with_name(p.name + ".partial")
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+        tmp.replace(p)
+
+    @classmethod
+    def load(cls, path, device=None) -> "HSHResult":
+        """Read a result written by :meth:`save` (``weights`` is ``(*S, 0)`` if it was not stored).
+
+        Raises:
+            FileNotFoundError: missing file.
+            ValueError: not a saved :class:`HSHResult`, or a newer format version.
+        """
+        import json
+        from pathlib import Path
+
+        import numpy as np
+
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: no such file")
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+            meta = json.loads(bytes(arrays.pop("metadata")).decode("utf-8"))
+        except (OSError, ValueError, KeyError) as e:
+            raise ValueError(f"{p}: not a saved HSHResult ({e})") from e
+        if meta.get("format") != _SAVE_FORMAT:
+            raise ValueError(f"{p}: not a saved HSHResult (format {meta.get('format')!r})")
+        if int(meta.get("version", 0)) > _SAVE_VERSION:
+            raise ValueError(f"{p}: format version {meta['version']} is newer than this library's {_SAVE_VERSION}")
+        t = {k: torch.from_numpy(v).to(device) for k, v in arrays.items()}
+        S = tuple(t["normals"].shape[:-1])
+        w = t.get("weights", torch.zeros(*S, 0, dtype=t["normals"].dtype, device=device))
+        return cls(normals=t["normals"], coefficients=t["coefficients"], albedo=t["albedo"], residual=t["residual"],
+                   weights=w, mask=t["mask"], order=int(meta["order"]), lights=t["lights"],
+                   runtime_s=float(meta.get("runtime_s", 0.0)), info=dict(meta.get("info", {})),
+                   basis_brdfs=t.get("basis_brdfs"), mixing=t.get("mixing"), confidence=t.get("confidence"))
 
     def relight(self, lights: torch.Tensor, intensities: Optional[torch.Tensor] = None, clamp: bool = True) -> torch.Tensor:
         """Render the fitted surface under new lights.

@@ -1,0 +1,375 @@
+"""Tests for the ``torch-hsh`` command (torch_hsh.cli): exit codes, validation before any folder is
+created, refusal of folders that are not ours, atomic replacement, strict JSON, confidence output.
+
+The folder mechanics are tested with a fast stand-in for ``ps.solve_hsh`` (Lambertian normals and
+a constant coefficient map); the real solver runs end to end in tests/test_example_ps.py.
+"""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+import torch_hsh
+from torch_hsh import cli, ps
+from torch_hsh.io.diligent import _read_png, save_diligent
+
+ROOT = Path(__file__).resolve().parents[1]
+try:
+    import matplotlib  # noqa: F401  (error_map.png / relighting.png need it; the rest does not)
+
+    FIGURES = ("error_map.png", "relighting.png")
+except ImportError:  # pragma: no cover - the lowest-versions check installs it, a bare install may not
+    FIGURES = ()
+FAST = ["--size", "12", "--lights", "8", "--quiet"]
+
+
+def _strict_json(path):
+    def no_constants(name):
+        raise AssertionError(f"{path} holds the non-JSON constant {name}")
+
+    return json.loads(Path(path).read_text(), parse_constant=no_constants)
+
+
+@pytest.fixture
+def fake_solver(monkeypatch):
+    """Replace solve_hsh by Lambertian normals + a constant coefficient map; returns the call log."""
+    calls = []
+    state = {"confidence": None, "fail_in_pictures": None}
+
+    def solve(images, lights, intensities=None, mask=None, order=3, materials=None, progress=False, **kw):
+        calls.append(dict(order=order, materials=materials, lights=int(lights.shape[0])))
+        lam = ps.lambertian_ls(images, lights, intensities, mask)
+        K = torch_hsh.num_isotropic(order)
+        coeffs = torch.zeros(*mask.shape, 3, K, dtype=images.dtype)
+        coeffs[..., 0] = 1.0
+        conf = state["confidence"]
+        return SimpleNamespace(
+            normals=lam.normals, coefficients=coeffs, info={"noise_sigma": float("nan"), "iterations": 3},
+            relight=lambda l, e=None: torch.zeros(l.shape[0], *mask.shape, 3, dtype=images.dtype),
+            confidence=None if conf is None else conf(mask),
+        )
+
+    monkeypatch.setattr(ps, "solve_hsh", solve)
+    real_pictures = cli._save_pictures
+
+    def pictures(*a, **k):
+        if state["fail_in_pictures"] is not None:
+            raise state["fail_in_pictures"]
+        return real_pictures(*a, **k)
+
+    monkeypatch.setattr(cli, "_save_pictures", pictures)
+    return SimpleNamespace(calls=calls, state=state)
+
+
+def _run(argv, capsys=None):
+    """(exit status, stderr) of an in-process ``torch-hsh`` run."""
+    try:
+        cli.main(argv)
+        code = 0
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else 1
+    err = capsys.readouterr().err if capsys is not None else ""
+    return code, err
+
+
+def _snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(Path(folder).iterdir())}
+
+
+def _leftovers(parent):
+    return [p.name for p in Path(parent).iterdir() if p.name.startswith(".")]
+
+
+# --------------------------------------------------------------------------- #
+# arguments: exit 2, nothing created
+# --------------------------------------------------------------------------- #
+def test_help_lists_the_options(capsys):
+    code, _ = _run(["ps", "--help"])
+    out = capsys.readouterr().out
+    assert code == 0
+    for opt in ("--data", "--out", "--holdout", "--drop-first", "--max-images", "--quiet", "--debug", "--overwrite"):
+        assert opt in out, opt
+
+
+@pytest.mark.parametrize("extra,msg", [
+    (["--holdout", "-3"], "--holdout"),
+    (["--holdout", "6"], "between 1 and L-3 = 5"),  # 8 lights
+    (["--order", "x"], "--order"),
+    (["--max-images", "2"], "--max-images"),
+    (["--drop-first", "7"], "--drop-first"),  # 1 image left of 8
+    (["--device", "nonsense"], "--device"),
+    (["--threads", "0"], "--threads"),
+])  # fmt: skip
+def test_bad_arguments_exit_2_before_any_folder(tmp_path, capsys, fake_solver, extra, msg):
+    out = tmp_path / "res"
+    code, err = _run(["ps", "--out", str(out), *FAST, *extra], capsys)
+    assert code == 2 and msg in err
+    assert not out.exists() and os.listdir(tmp_path) == []
+    assert fake_solver.calls == []
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message when CUDA is missing")
+def test_device_cuda_without_cuda(tmp_path, capsys, fake_solver):
+    code, err = _run(["ps", "--out", str(tmp_path / "r"), *FAST, "--device", "cuda"], capsys)
+    assert code == 2 and "CUDA is not available" in err
+    assert os.listdir(tmp_path) == []
+
+
+def test_unwritable_out_fails_before_the_solve(tmp_path, capsys, fake_solver):
+    (tmp_path / "file.txt").write_text("x")
+    code, err = _run(["ps", "--out", str(tmp_path / "file.txt" / "res"), *FAST], capsys)
+    assert code == 2 and "is not a folder" in err
+    code, err = _run(["ps", "--out", str(tmp_path / "file.txt"), *FAST], capsys)
+    assert code == 2 and "not a folder" in err
+    assert fake_solver.calls == [] and sorted(os.listdir(tmp_path)) == ["file.txt"]
+
+
+def test_unwritable_parent_detected(tmp_path, capsys, fake_solver, monkeypatch):
+    # root may write anywhere, so the permission answer is simulated
+    monkeypatch.setattr(cli.os, "access", lambda path, mode: Path(path) != tmp_path)
+    code, err = _run(["ps", "--out", str(tmp_path / "a" / "b"), *FAST], capsys)
+    assert code == 2 and "is not writable" in err
+    assert fake_solver.calls == [] and os.listdir(tmp_path) == []
+
+
+# --------------------------------------------------------------------------- #
+# input files: exit 1, one line naming the file
+# --------------------------------------------------------------------------- #
+def _small_dataset(folder, normals=False):
+    scene = cli.synthetic_scene(12, 8)
+    save_diligent(folder, scene["images"], scene["lights"], scene["intensities"], scene["mask"],
+                  scene["normals_gt"] if normals else None)
+    return folder
+
+
+def test_bad_input_file_one_line_exit_1(tmp_path, capsys, fake_solver):
+    data = _small_dataset(tmp_path / "obj")
+    (data / "light_directions.txt").write_bytes(bytes(range(256)))
+    out = tmp_path / "res"
+    code, err = _run(["ps", "--data", str(data), "--out", str(out), "--quiet"], capsys)
+    assert code == 1
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "light_directions.txt" in lines[0] and "Traceback" not in err
+    assert not out.exists() and fake_solver.calls == []
+    code, err = _run(["ps", "--data", str(data), "--out", str(out), "--quiet", "--debug"], capsys)
+    assert code == 1 and "Traceback" in err and "light_directions.txt" in err
+
+
+def test_truncated_png_names_the_file(tmp_path, capsys, fake_solver):
+    data = _small_dataset(tmp_path / "obj")
+    raw = (data / "003.png").read_bytes()
+    (data / "003.png").write_bytes(raw[: len(raw) // 2])
+    code, err = _run(["ps", "--data", str(data), "--out", str(tmp_path / "res"), "--quiet"], capsys)
+    assert code == 1 and "003.png" in err and len(err.strip().splitlines()) == 1
+
+
+# --------------------------------------------------------------------------- #
+# output folder: ours only with a manifest, atomic replacement
+# --------------------------------------------------------------------------- #
+def test_run_writes_manifest_last_and_strict_json(tmp_path, fake_solver):
+    out = tmp_path / "res"
+    metrics = cli.ps_main(["--out", str(out), *FAST])
+    manifest = _strict_json(out / cli.MANIFEST)
+    assert manifest["format"] == cli.MANIFEST_FORMAT
+    assert set(manifest["files"]) | {cli.MANIFEST} == set(os.listdir(out))
+    for name in ("normals.npy", "coefficients.exr", "metrics.json", "normal_map.png", *FIGURES):
+        assert name in manifest["files"], name
+    m = _strict_json(out / "metrics.json")
+    assert m["solver_info"]["noise_sigma"] is None  # NaN -> null
+    assert m["pixels"] == metrics["pixels"] > 0 and m["lights"] == 8
+    assert cli.is_result_folder(out)
+    assert _leftovers(tmp_path) == []
+
+
+def test_without_matplotlib_figures_are_skipped_and_said(tmp_path, capsys, fake_solver, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    out = tmp_path / "res"
+    cli.ps_main(["--out", str(out), "--size", "12", "--lights", "8"])
+    assert "matplotlib is not installed" in capsys.readouterr().out
+    assert not (out / "error_map.png").exists() and not (out / "relighting.png").exists()
+    assert (out / "normal_map.png").exists()
+    assert set(_strict_json(out / cli.MANIFEST)["files"]) | {cli.MANIFEST} == set(os.listdir(out))
+
+
+@pytest.mark.skipif(not FIGURES, reason="needs matplotlib for error_map.png")
+def test_rerun_replaces_own_result_and_drops_stale_files(tmp_path, fake_solver):
+    out = tmp_path / "res"
+    cli.ps_main(["--out", str(out), *FAST])  # synthetic: ground truth -> error_map.png
+    assert (out / "error_map.png").exists()
+    data = _small_dataset(tmp_path / "obj", normals=False)  # no ground truth -> no error map
+    cli.ps_main(["--data", str(data), "--out", str(out), "--quiet"])
+    assert not (out / "error_map.png").exists()
+    assert set(_strict_json(out / cli.MANIFEST)["files"]) | {cli.MANIFEST} == set(os.listdir(out))
+    assert _leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("user_files", [
+    {"thesis.tex": "do not touch"},
+    {"normals.npy": "my own normals", "metrics.json": "{}"},  # a result from before manifests, or the user's
+])  # fmt: skip
+def test_refuses_folders_that_are_not_ours(tmp_path, capsys, fake_solver, user_files):
+    out = tmp_path / "mine"
+    out.mkdir()
+    for name, text in user_files.items():
+        (out / name).write_text(text)
+    code, err = _run(["ps", "--out", str(out), *FAST], capsys)
+    assert code == 2 and "--overwrite" in err
+    assert {n: (out / n).read_text() for n in user_files} == user_files and fake_solver.calls == []
+    assert sorted(os.listdir(tmp_path)) == ["mine"]
+    cli.ps_main(["--out", str(out), *FAST, "--overwrite"])
+    assert cli.is_result_folder(out) and not (out / "thesis.tex").exists()
+
+
+def test_never_replaces_cwd_home_or_the_data_folder(tmp_path, capsys, fake_solver, monkeypatch):
+    data = _small_dataset(tmp_path / "obj")
+    monkeypatch.chdir(tmp_path)
+    for out in (".", str(tmp_path.parent), str(Path.home())):
+        code, err = _run(["ps", "--out", out, *FAST, "--overwrite"], capsys)
+        assert code == 2 and "folder of its own" in err
+    for out in (data, data / "res", tmp_path):
+        code, err = _run(["ps", "--data", str(data), "--out", str(out), "--quiet", "--overwrite"], capsys)
+        assert code == 2
+    assert fake_solver.calls == [] and sorted(os.listdir(tmp_path)) == ["obj"]
+    assert (data / "light_directions.txt").exists()
+
+
+def test_our_result_with_a_user_file_added_is_not_ours(tmp_path, capsys, fake_solver):
+    out = tmp_path / "res"
+    cli.ps_main(["--out", str(out), *FAST])
+    (out / "notes.txt").write_text("mine")
+    assert not cli.is_result_folder(out)
+    code, err = _run(["ps", "--out", str(out), *FAST], capsys)
+    assert code == 2 and (out / "notes.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("exc,code", [(KeyboardInterrupt(), 130), (RuntimeError("disk full"), 1)])
+def test_interrupted_run_leaves_previous_result_untouched(tmp_path, capsys, fake_solver, exc, code):
+    out = tmp_path / "res"
+    cli.ps_main(["--out", str(out), *FAST])
+    before = _snapshot(out)
+    fake_solver.state["fail_in_pictures"] = exc  # after normals/coefficients/metrics are staged
+    got, _ = _run(["ps", "--out", str(out), *FAST, "--seed", "3"], capsys)
+    assert got == code
+    assert _snapshot(out) == before
+    assert _leftovers(tmp_path) == []  # the staging folder is removed
+
+
+def test_failed_swap_restores_the_previous_result(tmp_path, capsys, fake_solver, monkeypatch):
+    out = tmp_path / "res"
+    cli.ps_main(["--out", str(out), *FAST])
+    before = _snapshot(out)
+    real_rename = os.rename
+    seen = []
+
+    def rename(src, dst):
+        seen.append((Path(src).name, Path(dst).name))
+        if len(seen) == 2:  # new folder into place
+            raise KeyboardInterrupt
+        return real_rename(src, dst)
+
+    monkeypatch.setattr(cli.os, "rename", rename)
+    code, _ = _run(["ps", "--out", str(out), *FAST], capsys)
+    assert code == 130
+    assert _snapshot(out) == before and _leftovers(tmp_path) == []
+
+
+def test_confidence_map_written_and_summarised(tmp_path, fake_solver):
+    def conf(mask):
+        H, W = mask.shape
+        return torch.linspace(0, 1, H * W, dtype=torch.float64).reshape(H, W)
+
+    fake_solver.state["confidence"] = conf
+    out = tmp_path / "res"
+    cli.ps_main(["--out", str(out), *FAST])
+    m = _strict_json(out / "metrics.json")
+    mask = torch.as_tensor(cli.synthetic_scene(12, 8)["mask"]).numpy()
+    c = conf(torch.as_tensor(mask)).numpy()
+    assert m["confidence"]["mean"] == pytest.approx(float(c[mask].mean()), abs=1e-12)
+    assert m["confidence"]["pixels"] == int(mask.sum())
+    png = _read_png(out / "confidence.png")
+    assert png.dtype == np.uint8 and png.shape == mask.shape
+    np.testing.assert_array_equal(png[mask], np.rint(c[mask] * 255).astype(np.uint8))
+    assert "confidence.png" in _strict_json(out / cli.MANIFEST)["files"]
+
+
+def test_no_confidence_attribute_no_file(tmp_path, fake_solver):
+    cli.ps_main(["--out", str(tmp_path / "r"), *FAST])
+    assert not (tmp_path / "r" / "confidence.png").exists()
+    assert "confidence" not in _strict_json(tmp_path / "r" / "metrics.json")
+
+
+def test_drop_first_and_max_images(tmp_path, fake_solver):
+    data = _small_dataset(tmp_path / "obj")
+    m = cli.ps_main(["--data", str(data), "--out", str(tmp_path / "r"), "--quiet", "--drop-first", "2",
+                     "--max-images", "4"])
+    assert m["lights"] == 4 and fake_solver.calls[-1]["lights"] == 4
+
+
+def test_figures_copied(tmp_path, fake_solver):
+    cli.ps_main(["--out", str(tmp_path / "r"), *FAST, "--figures", str(tmp_path / "fig")])
+    assert sorted(os.listdir(tmp_path / "fig")) == sorted(
+        f"ps_{n}" for n in os.listdir(tmp_path / "r") if n.endswith(".png"))
+
+
+# --------------------------------------------------------------------------- #
+# the real process
+# --------------------------------------------------------------------------- #
+def test_python_m_torch_hsh_exit_codes(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run([sys.executable, "-m", "torch_hsh", "ps", "--holdout", "-3", "--out", str(tmp_path / "r")],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 2 and "--holdout" in r.stderr and not (tmp_path / "r").exists()
+    r = subprocess.run([sys.executable, "-m", "torch_hsh", "--version"], capture_output=True, text=True, env=env,
+                       timeout=120)
+    assert r.returncode == 0 and torch_hsh.__version__ in r.stdout
+
+
+# --------------------------------------------------------------------------- #
+# fit
+# --------------------------------------------------------------------------- #
+def test_fit_merl_file(tmp_path, capsys):
+    from torch_hsh.brdf import Lambertian
+    from torch_hsh.io.merl import tabulate_merl, write_merl
+
+    f = write_merl(tmp_path / "lambert.binary", tabulate_merl(Lambertian(0.5), shape=(4, 4, 8)))
+    out = tmp_path / "c.npz"
+    code, _ = _run(["fit", str(f), "--order", "2", "--out", str(out), "--quiet"], capsys)
+    assert code == 0
+    z = np.load(out)
+    K = torch_hsh.num_isotropic(2)
+    assert z["coefficients"].shape == (3, K)
+    # the command is the library's projection of the file's BRDF, with its energy accuracy
+    from torch_hsh.fitting import brdf_energy, energy_accuracy, project
+    from torch_hsh.io.merl import read_merl
+
+    ref = project(read_merl(f), order=2)
+    np.testing.assert_array_equal(z["coefficients"], ref.numpy())
+    np.testing.assert_array_equal(z["energy_accuracy"], energy_accuracy(ref, brdf_energy(read_merl(f), 2)).numpy())
+    assert abs(z["coefficients"][0, 0] - 1.0) < 0.2  # a_0 = 2 rho for a Lambertian, up to the coarse 4x4x8 table
+    assert json.loads(str(z["metadata"]))["order"] == 2
+    code, err = _run(["fit", str(f), "--order", "2", "--out", str(out), "--quiet"], capsys)
+    assert code == 2 and "--overwrite" in err
+    (tmp_path / "bad.binary").write_bytes(b"\x01\x02")
+    code, err = _run(["fit", str(tmp_path / "bad.binary"), "--out", str(tmp_path / "d.npz"), "--quiet"], capsys)
+    assert code == 1 and "bad.binary" in err and not (tmp_path / "d.npz").exists()
+
+
+def test_depth_mesh_and_result_file_from_a_real_solve(tmp_path):
+    pytest.importorskip("trimesh")
+    out = tmp_path / "surf"
+    cli.ps_main(["--out", str(out), "--size", "16", "--lights", "10", "--depth", "--mesh", "--quiet"])
+    names = set(_strict_json(out / cli.MANIFEST)["files"])
+    assert {"depth.npy", "depth.exr", "mesh.ply", "surface.png", "result.npz"} <= names
+    depth = np.load(out / "depth.npy")
+    res = ps.HSHResult.load(out / "result.npz")
+    mask = res.mask.numpy()
+    assert depth.shape == mask.shape and np.isfinite(depth[mask]).all() and np.isnan(depth[~mask]).all()
+    # a sphere: the centre is the highest point of the integrated surface
+    assert depth[mask].max() - depth[8, 8] < 0.2 * (depth[mask].max() - depth[mask].min())
+    assert _strict_json(out / "metrics.json")["surface"]["components"] == 1

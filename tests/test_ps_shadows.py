@@ -1,0 +1,73 @@
+"""The cast-shadow loop of the HSH solver (torch_hsh.ps.shadows)."""
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from torch_hsh import ps, scenes
+from torch_hsh.ps.shadows import shadow_loop
+
+
+def _scene(S=48):
+    hgt = scenes.bumpy_heightfield(S, n_bumps=8, seed=1, smoothness=0.12, dtype=torch.float64) * 1.6
+    n = scenes.heightfield_normals(hgt)
+    l = scenes.cone_lights(24, 65.0, seed=2, dtype=torch.float64)
+    vis = scenes.cast_shadow_mask(hgt, l)
+    img = torch.rand(24, S, S, 3, dtype=torch.float64)
+    return img, l, n, vis
+
+
+def test_loop_excludes_the_cast_shadows_of_the_integrated_surface_and_stops_at_the_fixed_point():
+    img, l, n, vis = _scene()
+    mask = torch.ones(n.shape[:2], dtype=torch.bool)
+    calls = []
+
+    def solve(images, lights, mask=None, valid=None, init=None, **kw):  # an oracle solver: the true normals
+        calls.append(valid)
+        return SimpleNamespace(normals=n.clone(), mask=mask, info={})
+
+    res = shadow_loop(solve, img, l, mask, None, 3, 0.25, None)
+    assert calls[0] is None and len(calls) == 2  # one re-solve, then the occlusion set no longer changes
+    v = calls[1]
+    agree = float((v == vis).double().mean())
+    found = float((~v & ~vis).sum()) / max(int((~vis).sum()), 1)
+    assert agree > 0.97 and found > 0.6, (agree, found)
+    assert res.info["shadow_rounds"] == 1.0
+    assert res.info["shadowed_fraction"] == pytest.approx(float((~v).double().mean()))
+
+
+def test_loop_keeps_the_callers_exclusions():
+    img, l, n, _ = _scene(32)
+    mask = torch.ones(n.shape[:2], dtype=torch.bool)
+    given = torch.ones(img.shape[:3], dtype=torch.bool)
+    given[0] = False
+    seen = []
+
+    def solve(images, lights, mask=None, valid=None, init=None, **kw):
+        seen.append(valid)
+        return SimpleNamespace(normals=n.clone(), mask=mask, info={})
+
+    shadow_loop(solve, img, l, mask, given, 1, 0.25, None)
+    assert not bool(seen[-1][0].any())
+
+
+def test_cast_shadows_arguments_are_checked():
+    img, l, _, _ = _scene(16)
+    with pytest.raises(ValueError, match="cast_shadows"):
+        ps.solve_hsh(img.reshape(24, -1, 3), l, cast_shadows=1)
+    with pytest.raises(ValueError, match="cast_shadows"):
+        ps.solve_hsh(img, l, cast_shadows=-1)
+    with pytest.raises(ValueError, match="shadow_bias"):
+        ps.solve_hsh(img, l, cast_shadows=1, shadow_bias=-1.0)
+
+
+@pytest.mark.slow
+def test_solve_hsh_with_cast_shadows_runs_end_to_end():
+    img, l, n, vis = _scene(24)
+    from torch_hsh.brdf import Lambertian
+    from torch_hsh.render import render
+
+    img = render(n, l, Lambertian(torch.full((24, 24, 3), 0.6, dtype=torch.float64)), visibility=vis, ambient=0.3)
+    r = ps.solve_hsh(img.float(), l.float(), cast_shadows=1, calibration_pixels=256, calibration_rounds=3, max_iter=3)
+    assert "shadow_rounds" in r.info and 0 <= r.info["shadowed_fraction"] < 1
+    assert bool(torch.isfinite(r.normals).all())

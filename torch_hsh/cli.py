@@ -1,0 +1,747 @@
+r"""The ``torch-hsh`` command (also ``python -m torch_hsh``).
+
+Subcommands:
+
+* ``torch-hsh ps`` — photometric stereo with the isotropic Helmholtz HSH basis on
+  a DiLiGenT-layout folder (``--data DIR``) or, without ``--data``, on a built-in
+  synthetic sphere with three analytic materials. Compares Lambertian least
+  squares, robust (trimmed) Lambertian and the HSH solver and writes a result
+  folder.
+* ``torch-hsh fit`` — project a MERL ``.binary`` BRDF onto the isotropic
+  Helmholtz basis and write the coefficients (``.npz``) and a JSON summary.
+
+Conventions: every argument and input file is checked before any folder is
+created and before the solve. A bad argument gets an argparse message and exit
+status 2; a bad input file (or any other failure) one line ``torch-hsh ps:
+error: ...`` naming the file and exit status 1, with the traceback only under
+``--debug``; Ctrl-C gives exit status 130.
+
+Output folder of ``ps`` (``--out``, default ``results/ps_demo``): everything is
+written into a temporary folder beside the target, ``manifest.json`` last; the
+result is then committed by swapping folders (the old result renamed aside, the
+new one renamed into place with Ctrl-C held off for the two renames, the old one
+removed). At any moment the target holds either the previous complete result or
+the new one, never a mix; a failed or interrupted run leaves the previous result
+untouched. A folder is *ours* only if it holds our ``manifest.json`` and nothing
+that the manifest does not list; anything else (a user's files, a result from
+before manifests existed) is refused unless ``--overwrite`` is given, in which
+case it is replaced as a whole. ``metrics.json`` is strict JSON (``null`` for
+NaN / Inf).
+
+Written files: ``normals.npy`` (H, W, 3) float32 in the DiLiGenT frame (zero
+outside the mask), ``coefficients.exr`` (coefficient maps), ``metrics.json``,
+``normal_map.png``, ``confidence.png`` (8-bit, when the solver reports a
+confidence map), ``error_map.png`` (with ground truth) and ``relighting.png``
+(input / relit / error; these two need matplotlib), ``result.npz`` (the whole
+:class:`~torch_hsh.ps.HSHResult`, see ``HSHResult.load``), ``manifest.json``;
+with ``--depth``: ``depth.npy``, ``depth.exr`` and ``surface.png`` (a shaded
+rendering of the integrated depth); with ``--mesh``: ``mesh.ply`` (or
+``mesh.obj``) and ``surface.png``.
+
+Example::
+
+    torch-hsh ps --out results/ps_demo
+    torch-hsh ps --data ../shared/data/bunny_specular --holdout 5 --out results/bunny
+    torch-hsh ps --data ../shared/data/diligent_cat --drop-first 0 --depth --mesh --out results/cat
+    torch-hsh fit my_material.binary --order 6 --out my_material.npz
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import secrets
+import shutil
+import signal
+import sys
+import tempfile
+import time
+import traceback
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+import torch
+
+__all__ = ["main", "ps_main", "synthetic_scene", "MANIFEST", "MANIFEST_FORMAT", "is_result_folder"]
+
+PROG = "torch-hsh"
+MANIFEST = "manifest.json"
+MANIFEST_FORMAT = "torch-hsh-ps-result"
+MANIFEST_VERSION = 1
+
+
+class InputError(Exception):
+    """A bad input (file or data): reported as one line, exit status 1."""
+
+
+# --------------------------------------------------------------------------- #
+# argument types
+# --------------------------------------------------------------------------- #
+def _int_in(lo: Optional[int] = None, hi: Optional[int] = None, what: str = "integer"):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an {what}, got {text!r}") from None
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            rng = f">= {lo}" if hi is None else f"between {lo} and {hi}"
+            raise argparse.ArgumentTypeError(f"must be {rng}, got {value}")
+        return value
+
+    return parse
+
+
+def _materials_arg(text: str):
+    """``auto``, or an integer >= 0 (0: independent per-pixel BRDFs)."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    return _int_in(0)(text)
+
+
+def _parse_device(ap: argparse.ArgumentParser, spec: str) -> torch.device:
+    try:
+        dev = torch.device(spec)
+    except (RuntimeError, ValueError) as err:
+        ap.error(f"argument --device: invalid device {spec!r} ({err})")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            ap.error(f"argument --device: {spec!r} requested but CUDA is not available (use --device cpu)")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            ap.error(f"argument --device: {spec!r} but only {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type == "mps":
+        if not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+            ap.error(f"argument --device: {spec!r} requested but MPS is not available")
+    elif dev.type != "cpu":
+        ap.error(f"argument --device: unsupported device type {dev.type!r} (cpu, cuda, cuda:N or mps)")
+    return dev
+
+
+# --------------------------------------------------------------------------- #
+# output folder: ownership, staging, swap commit
+# --------------------------------------------------------------------------- #
+def _read_manifest(folder: Path) -> Optional[dict]:
+    try:
+        meta = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(meta, dict) or meta.get("format") != MANIFEST_FORMAT or not isinstance(meta.get("files"), dict):
+        return None
+    return meta
+
+
+def is_result_folder(folder) -> bool:
+    """True if ``folder`` holds our ``manifest.json`` and nothing the manifest does not list."""
+    folder = Path(folder)
+    meta = _read_manifest(folder) if folder.is_dir() else None
+    if meta is None:
+        return False
+    listed = set(meta["files"]) | {MANIFEST}
+    return all(p.name in listed for p in folder.iterdir())
+
+
+def _check_out(ap: argparse.ArgumentParser, out: Path, overwrite: bool, option: str = "--out") -> Path:
+    """Static checks of the output folder (nothing is created): exit 2 on a bad ``--out``."""
+    out = Path(os.path.abspath(out))
+    cwd = Path(os.getcwd())
+    if out == cwd or out in cwd.parents or out == Path.home() or out.parent == out:
+        # never replaced as a whole, not even with --overwrite
+        ap.error(f"argument {option}: {out} is the current folder, one of its parents, the home folder or the "
+                 "root; give a folder of its own for the result")
+    if out.exists() and not out.is_dir():
+        ap.error(f"argument {option}: {out} exists and is not a folder")
+    if out.is_dir():
+        entries = sorted(p.name for p in out.iterdir())
+        if entries and not is_result_folder(out) and not overwrite:
+            shown = ", ".join(entries[:5]) + (" ..." if len(entries) > 5 else "")
+            ap.error(
+                f"argument {option}: {out} holds files that are not a torch-hsh result ({shown}); "
+                "choose another folder or pass --overwrite to replace the whole folder"
+            )
+    anc = out.parent
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        ap.error(f"argument {option}: cannot create {out}: {anc} is not a folder")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        ap.error(f"argument {option}: cannot create {out}: {anc} is not writable")
+    return out
+
+
+@contextmanager
+def _signals_held():
+    """Hold SIGINT/SIGTERM (delivered on exit) around a few renames, where the platform allows."""
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+class _Staging:
+    """A temporary folder beside ``target``; :meth:`commit` swaps it into place.
+
+    Leaving the ``with`` block without a commit (error, Ctrl-C) removes the
+    temporary folder and leaves ``target`` as it was.
+    """
+
+    def __init__(self, target: Path):
+        self.target = target
+        self.path: Optional[Path] = None
+        self.files: List[str] = []
+
+    def __enter__(self) -> "_Staging":
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".partial", dir=self.target.parent))
+        os.chmod(self.path, 0o777 & ~_umask())  # mkdtemp makes 0700; a result folder is an ordinary folder
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.path is not None and self.path.exists():
+            shutil.rmtree(self.path, ignore_errors=True)
+
+    @property
+    def folder(self) -> Path:
+        """The staging folder (only inside the ``with`` block, before the commit)."""
+        if self.path is None:
+            raise RuntimeError("the staging folder is not open")
+        return self.path
+
+    def file(self, name: str) -> Path:
+        self.files.append(name)
+        return self.folder / name
+
+    def write_manifest(self, meta: Dict[str, Any]) -> None:
+        files = {}
+        for name in self.files:
+            p = self.folder / name
+            files[name] = {"bytes": p.stat().st_size, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()}
+        manifest = dict(meta, format=MANIFEST_FORMAT, format_version=MANIFEST_VERSION, files=files)
+        tmp = self.folder / (MANIFEST + ".tmp")
+        tmp.write_text(json.dumps(manifest, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        os.replace(tmp, self.folder / MANIFEST)
+
+    def commit(self) -> None:
+        """Old result aside, new one in place (signals held), then the old one removed."""
+        old = None
+        with _signals_held():
+            if self.target.exists():
+                old = self.target.parent / f".{self.target.name}.old-{secrets.token_hex(4)}"
+                os.rename(self.target, old)
+            try:
+                os.rename(self.folder, self.target)
+            except BaseException:
+                if old is not None:
+                    os.rename(old, self.target)
+                raise
+            self.path = None
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def _umask() -> int:
+    from .io.merl import _current_umask
+
+    return _current_umask()
+
+
+def _jsonable(x):
+    """Plain JSON values: NaN/Inf -> None, tensors/arrays -> lists, numpy scalars -> Python."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, torch.Tensor):
+        return _jsonable(x.detach().cpu().tolist())
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return _jsonable(x.item())
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if x is None or isinstance(x, (bool, int, str)):
+        return x
+    return str(x)
+
+
+def _dump_json(path: Path, obj) -> None:
+    path.write_text(json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+
+
+# --------------------------------------------------------------------------- #
+# data
+# --------------------------------------------------------------------------- #
+def synthetic_scene(size: int = 48, n_lights: int = 40, seed: int = 0, dtype=torch.float64) -> Dict[str, Any]:
+    """Sphere with three analytic-BRDF regions, textured albedo, DiLiGenT-like lights, noise.
+
+    Returns a dict with ``images (L, H, W, 3)``, ``lights (L, 3)``,
+    ``intensities (L, 3)``, ``mask (H, W)``, ``normals_gt (H, W, 3)``,
+    ``labels`` and ``name``.
+
+    Example:
+        >>> d = synthetic_scene(16, 8)
+        >>> tuple(d["images"].shape), tuple(d["lights"].shape)
+        ((8, 16, 16, 3), (8, 3))
+    """
+    from . import scenes
+    from .brdf import BlinnPhong, CookTorranceGGX, TorranceSparrow
+    from .render import add_sensor_noise, quantize, render
+
+    normals, mask = scenes.sphere_normals(size, radius=0.95, dtype=dtype)
+    mask = mask & (normals[..., 2] > 0.3)  # leave out grazing rim pixels (mostly attached shadow)
+    labels = scenes.material_regions(size, n_regions=3, seed=seed)
+    albedo = 0.15 + 0.7 * scenes.albedo_texture(size, seed=seed, dtype=dtype)  # (H, W, 3)
+    lights = scenes.diligent_like_lights(n_lights, seed=seed, dtype=dtype)
+    inten = scenes.light_intensities(n_lights, seed=seed, dtype=dtype)
+    ones = torch.ones(size, size, 1, dtype=dtype)
+    models = [
+        CookTorranceGGX(albedo=albedo, specular=0.3 * ones, roughness=0.5 * ones, f0=0.3),
+        BlinnPhong(kd=albedo, ks=0.3 * ones, shininess=20.0 * ones),
+        TorranceSparrow(albedo, 0.15 * ones, 0.35 * ones, 1.5 * ones),
+    ]
+    img = torch.zeros(n_lights, size, size, 3, dtype=dtype)
+    for k, m in enumerate(models):
+        sel = (labels % len(models)) == k
+        img = torch.where(sel[None, ..., None], render(normals, lights, m, intensities=inten), img)
+    full = float(img[:, mask].max()) * 1.05
+    img = quantize(add_sensor_noise(img, read_std=2e-3 * full, shot_gain=1e-4 * full, seed=seed), 16, full)
+    img = img * mask[None, ..., None].to(dtype)
+    return dict(images=img, lights=lights, intensities=inten, mask=mask, normals_gt=normals,
+                labels=labels, name="synthetic sphere (GGX / Blinn-Phong / Torrance-Sparrow)")
+
+
+def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
+    if args.data is None:
+        d: Dict[str, Any]
+        if args.drop_first >= args.lights:
+            ap.error(f"argument --drop-first: {args.drop_first} leaves no image of the {args.lights} synthetic lights")
+        left = args.lights - args.drop_first if args.max_images is None else min(
+            args.max_images, args.lights - args.drop_first)
+        if left < 3:
+            ap.error(f"argument --drop-first/--max-images: {left} synthetic image(s) left; at least 3 are needed")
+        d = synthetic_scene(args.size, args.lights, args.seed)
+        stop = None if args.max_images is None else args.drop_first + args.max_images
+        sel = slice(args.drop_first, stop)
+        d.update(images=d["images"][sel], lights=d["lights"][sel], intensities=d["intensities"][sel])
+        return d
+    from .io.diligent import load_diligent
+
+    folder = Path(args.data)
+    if not folder.is_dir():
+        ap.error(f"argument --data: {folder} is not a folder")
+    try:
+        ds = load_diligent(folder, dtype=torch.float32, normalize_intensities=True,
+                           drop_first=args.drop_first, max_images=args.max_images)
+    except ValueError as err:
+        if "no images left" in str(err):
+            ap.error(f"argument --drop-first/--max-images: {err}")
+        raise InputError(str(err)) from err
+    except (OSError, TypeError) as err:
+        raise InputError(str(err)) from err
+    return dict(images=ds.images, lights=ds.lights, intensities=None, mask=ds.mask, normals_gt=ds.normals_gt,
+                name=str(folder))
+
+
+# --------------------------------------------------------------------------- #
+# figures
+# --------------------------------------------------------------------------- #
+def _to_png8(x: np.ndarray) -> np.ndarray:
+    return np.rint(np.clip(x, 0.0, 1.0) * 255).astype(np.uint8)
+
+
+def _save_pictures(stage: _Staging, data, res, err_map, confidence, relit_idx: int, say) -> List[str]:
+    """normal_map.png / confidence.png (kornia-rs) and error_map.png / relighting.png (matplotlib)."""
+    from .io.diligent import _write_png
+
+    mask = data["mask"].cpu().numpy()
+    n = res.normals.detach().cpu().numpy()
+    _write_png(stage.file("normal_map.png"), _to_png8(np.where(mask[..., None], (n + 1) / 2, 1.0)))
+    if confidence is not None:
+        _write_png(stage.file("confidence.png"), _to_png8(np.where(mask, confidence, 0.0)))
+    try:
+        import matplotlib
+    except ImportError:
+        say("matplotlib is not installed: error_map.png and relighting.png skipped "
+            "(pip install 'torch-hsh[examples]')")
+        return stage.files
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if err_map is not None:
+        fig, ax = plt.subplots(figsize=(4.2, 3.6))
+        e = np.where(mask, err_map, np.nan)
+        im = ax.imshow(e, cmap="magma", vmin=0, vmax=max(10.0, float(np.nanpercentile(e, 99))))
+        ax.set_title("HSH angular error (deg)")
+        ax.axis("off")
+        fig.colorbar(im, ax=ax)
+        fig.tight_layout()
+        fig.savefig(stage.file("error_map.png"), dpi=100)
+        plt.close(fig)
+    lt = data["lights"][relit_idx : relit_idx + 1].to(res.normals)
+    ei = None if data["intensities"] is None else data["intensities"][relit_idx : relit_idx + 1].to(res.normals)
+    relit = res.relight(lt, ei)[0].detach().cpu().numpy()
+    inp = data["images"][relit_idx].detach().cpu().numpy()
+    scale = float(np.percentile(inp[mask], 99.5)) if mask.any() else 1.0
+    scale = scale or 1.0
+    diff = np.abs(relit - inp).mean(-1) / scale
+    fig, axes = plt.subplots(1, 3, figsize=(10, 3.4))
+    axes[0].imshow(np.clip(inp / scale, 0, 1) ** (1 / 2.2))
+    axes[0].set_title(f"input (light {relit_idx})")
+    axes[1].imshow(np.clip(relit / scale, 0, 1) ** (1 / 2.2))
+    axes[1].set_title("HSH relit")
+    im = axes[2].imshow(np.where(mask, diff, np.nan), cmap="viridis", vmin=0, vmax=0.1)
+    axes[2].set_title("|relit - input| / max")
+    fig.colorbar(im, ax=axes[2])
+    for a in axes:
+        a.axis("off")
+    fig.tight_layout()
+    fig.savefig(stage.file("relighting.png"), dpi=100)
+    plt.close(fig)
+    return stage.files
+
+
+def _confidence_map(res, mask: torch.Tensor) -> Optional[np.ndarray]:
+    """The solver's ``confidence`` (H, W) in [0, 1] as a NumPy array, or None if it has none."""
+    conf = getattr(res, "confidence", None)
+    if conf is None:
+        return None
+    c = torch.as_tensor(conf).detach().to("cpu", torch.float64)
+    if tuple(c.shape) != tuple(mask.shape):
+        raise RuntimeError(f"solver confidence has shape {tuple(c.shape)}, expected {tuple(mask.shape)}")
+    inside = c[mask.cpu()]
+    if not bool(torch.isfinite(inside).all()) or bool((inside < 0).any()) or bool((inside > 1).any()):
+        raise RuntimeError("solver confidence is not within [0, 1] inside the mask")
+    return c.numpy()
+
+
+def _confidence_summary(conf: np.ndarray, mask: np.ndarray) -> Dict[str, Any]:
+    v = conf[mask]
+    if v.size == 0:
+        return {"pixels": 0}
+    return {
+        "mean": float(v.mean()), "median": float(np.median(v)), "min": float(v.min()), "max": float(v.max()),
+        "fraction_below_0.5": float((v < 0.5).mean()), "pixels": int(v.size),
+    }
+
+
+# --------------------------------------------------------------------------- #
+# ps
+# --------------------------------------------------------------------------- #
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--debug", action="store_true", help="show the traceback of an error")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+
+def _ps_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "ps", help="photometric stereo (HSH solver vs Lambertian baselines)",
+        description="Photometric stereo with the isotropic Helmholtz HSH basis on a DiLiGenT-layout folder "
+                    "or, without --data, on a built-in synthetic scene. Writes a result folder atomically.",
+    )
+    p.add_argument("--data", default=None, help="DiLiGenT-layout object folder (default: synthetic scene)")
+    p.add_argument("--out", default="results/ps_demo", help="output folder (default results/ps_demo)")
+    p.add_argument("--order", type=_int_in(0, 12), default=None,
+                   help="HSH order (default torch_hsh.ps.DEFAULT_ORDER)")
+    p.add_argument("--materials", type=_materials_arg, default=None,
+                   help="shared basis BRDFs of the HSH solver (default torch_hsh.ps.DEFAULT_MATERIALS; "
+                        "0: independent BRDF per pixel)")
+    p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or mps (default cpu)")
+    p.add_argument("--holdout", type=_int_in(0), default=0,
+                   help="0 (off) or 1..L-3: also fit on all but N lights and report the relighting error")
+    p.add_argument("--drop-first", type=_int_in(0), default=0, help="skip the first N images (e.g. 20 for bearPNG)")
+    p.add_argument("--max-images", type=_int_in(3), default=None, help="use at most N images (N >= 3)")
+    p.add_argument("--size", type=_int_in(8, 4096), default=48, help="synthetic image size")
+    p.add_argument("--lights", type=_int_in(3, 10000), default=40, help="synthetic number of lights")
+    p.add_argument("--seed", type=_int_in(0), default=0)
+    p.add_argument("--threads", type=_int_in(1, 1024), default=2, help="CPU threads for torch (default 2)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --out folder that is not a torch-hsh result (its files are deleted)")
+    p.add_argument("--cast-shadows", type=_int_in(0, 5), default=0,
+                   help="rounds of the cast-shadow loop of the HSH solver (default 0: off; see torch_hsh.ps.shadows)")
+    p.add_argument("--depth", action="store_true",
+                   help="integrate the normals: write depth.npy and depth.exr (pixel units, orthographic) and surface.png")
+    p.add_argument("--mesh", nargs="?", const="ply", choices=("ply", "obj"), default=None,
+                   help="also write the surface as a mesh (mesh.ply, or mesh.obj with --mesh obj; needs torch-hsh[mesh])")
+    p.add_argument("--integrator", choices=("poisson", "bilateral"), default="poisson",
+                   help="normal integration for --depth / --mesh (default poisson)")
+    p.add_argument("--figures", default=None, help="also copy the PNGs (prefixed ps_) into this folder")
+    _add_common(p)
+    p.set_defaults(handler=_run_ps, parser=p)
+    return p
+
+
+def _supports_auto_materials() -> bool:
+    import inspect
+
+    from .ps import settings
+
+    return "auto" in inspect.getsource(settings)
+
+
+def _save_surface(stage, args, res, mask, metrics, say) -> None:
+    """depth.npy + depth.exr (``--depth``), mesh.ply / mesh.obj (``--mesh``) and surface.png from the normals."""
+    from .io.diligent import _write_png
+    from .surface import integrate_normals, save_depth, save_mesh, shade_depth
+
+    t = time.perf_counter()
+    n = res.normals.detach().cpu().double()
+    m = mask.cpu()
+    depth, info = integrate_normals(n, m, method=args.integrator, return_info=True)
+    metrics["surface"] = {"integrator": args.integrator, "components": info.get("components"),
+                          "runtime_s": time.perf_counter() - t}
+    if args.depth:
+        save_depth(stage.file("depth.npy"), depth, m)
+        save_depth(stage.file("depth.exr"), depth, m)
+    if args.mesh:
+        albedo = res.albedo.detach().cpu().double() if getattr(res, "albedo", None) is not None else None
+        save_mesh(stage.file(f"mesh.{args.mesh}"), depth, m, normals=n, albedo=albedo)
+    img = shade_depth(depth, m).cpu().numpy()
+    _write_png(stage.file("surface.png"), _to_png8(img))
+    say(f"surface: {args.integrator} integration in {metrics['surface']['runtime_s']:.2f} s")
+
+
+def _errors(n, gt, mask):
+    from . import ps
+
+    if gt is None:
+        return float("nan"), float("nan")
+    e = ps.angular_error(n, gt.to(n))[mask]
+    return float(e.mean()), float(e.median())
+
+
+def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
+    from . import ps
+    from .io.exr import write_coefficient_maps_exr
+
+    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+    # ---- arguments and inputs, nothing created yet
+    dev = _parse_device(ap, args.device)
+    out = _check_out(ap, Path(args.out), args.overwrite)
+    if args.data is not None:
+        data_dir = Path(os.path.abspath(args.data))
+        if data_dir == out or out in data_dir.parents or data_dir in out.parents:
+            ap.error("argument --out: must not be the --data folder, inside it or around it")
+    figures = None
+    if args.figures is not None:
+        figures = Path(os.path.abspath(args.figures))
+        if figures.exists() and not figures.is_dir():
+            ap.error(f"argument --figures: {figures} exists and is not a folder")
+        if figures == out or out in figures.parents:
+            ap.error("argument --figures: must not be inside --out (the result folder is replaced as a whole)")
+    torch.set_num_threads(args.threads)
+    order = ps.DEFAULT_ORDER if args.order is None else args.order
+    materials = ps.DEFAULT_MATERIALS if args.materials is None else (args.materials or None)
+    if args.mesh:
+        try:
+            import trimesh  # noqa: F401
+        except ImportError:
+            ap.error("argument --mesh: needs trimesh (pip install 'torch-hsh[mesh]')")
+    if materials == "auto" and not _supports_auto_materials():
+        ap.error("argument --materials: 'auto' needs a torch_hsh.ps that supports materials='auto'")
+    data = _load_data(args, ap)
+    L = int(data["images"].shape[0])
+    if args.holdout and not 1 <= args.holdout <= L - 3:
+        ap.error(f"argument --holdout: must be 0 (off) or between 1 and L-3 = {L - 3} "
+                 f"so that at least 3 of the L = {L} lights remain, got {args.holdout}")
+    data = {k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in data.items()}
+    imgs, lights, inten, mask, gt = (data[k] for k in ("images", "lights", "intensities", "mask", "normals_gt"))
+    P = int(mask.sum())
+    if P == 0:
+        raise InputError(f"{data['name']}: the mask selects no pixel")
+
+    # ---- solve (the output folder is staged only now, so a failed solve creates nothing)
+    with _Staging(out) as stage:
+        say(f"data: {data['name']}  pixels={P} lights={L} order={order} "
+            f"materials={materials if materials else 'independent'} device={dev}")
+        rows = []
+        t = time.perf_counter()
+        lam = ps.lambertian_ls(imgs, lights, inten, mask)
+        rows.append(("Lambertian LS", *_errors(lam.normals, gt, mask), time.perf_counter() - t))
+        t = time.perf_counter()
+        rob = ps.robust_lambertian(imgs, lights, inten, mask)
+        rows.append(("robust Lambertian (trimmed)", *_errors(rob.normals, gt, mask), time.perf_counter() - t))
+        t = time.perf_counter()
+        kw = {"cast_shadows": args.cast_shadows} if args.cast_shadows else {}
+        res = ps.solve_hsh(imgs, lights, inten, mask, order=order, materials=materials, progress=not args.quiet, **kw)
+        t_hsh = time.perf_counter() - t
+        rows.append((f"HSH (order {order})", *_errors(res.normals, gt, mask), t_hsh))
+        say(f"\n{'method':32s} {'mean (deg)':>10s} {'median (deg)':>12s} {'time (s)':>9s}")
+        for name, mean, med, tt in rows:
+            say(f"{name:32s} {mean:10.2f} {med:12.2f} {tt:9.2f}")
+
+        metrics: Dict[str, Any] = {
+            "method": "hsh", "order": order, "materials": materials, "pixels": P, "lights": L,
+            "runtime_s": t_hsh, "data": data["name"], "drop_first": args.drop_first,
+            "methods": {name: {"mean_angular_error_deg": m, "median_angular_error_deg": md, "runtime_s": tt}
+                        for name, m, md, tt in rows},
+            "solver_info": res.info,
+        }
+        err_map: Optional[np.ndarray] = None
+        if gt is not None:
+            metrics["mean_angular_error_deg"] = rows[2][1]
+            metrics["median_angular_error_deg"] = rows[2][2]
+            metrics["lambertian_mean_angular_error_deg"] = rows[0][1]
+            metrics["robust_lambertian_mean_angular_error_deg"] = rows[1][1]
+            err_map = ps.angular_error(res.normals, gt.to(res.normals), mask).cpu().numpy()
+        confidence = _confidence_map(res, mask)
+        if confidence is not None:
+            metrics["confidence"] = _confidence_summary(confidence, mask.cpu().numpy())
+        if args.holdout > 0:
+            t = time.perf_counter()
+            ho = ps.holdout_evaluation(imgs, lights, inten, mask, holdout=args.holdout, seed=args.seed,
+                                       order=order, materials=materials)
+            metrics["holdout"] = {
+                "held_out_lights": ho.test_indices.tolist(), "relative_rmse": ho.relative_rmse, "rmse": ho.rmse,
+                "lambertian_relative_rmse": ho.lambertian_relative_rmse, "runtime_s": time.perf_counter() - t,
+            }
+            say(f"\nheld-out relighting ({args.holdout} lights): HSH relative RMSE {ho.relative_rmse:.4f}, "
+                f"robust Lambertian {ho.lambertian_relative_rmse:.4f}")
+
+        np.save(stage.file("normals.npy"), res.normals.detach().cpu().numpy().astype(np.float32))
+        if hasattr(res, "save"):
+            res.save(stage.file("result.npz"))
+        if args.depth or args.mesh:
+            _save_surface(stage, args, res, mask, metrics, say)
+        write_coefficient_maps_exr(stage.file("coefficients.exr"), res.coefficients.detach().cpu().float())
+        _dump_json(stage.file("metrics.json"), metrics)
+        _save_pictures(stage, data, res, err_map, confidence, relit_idx=L // 2, say=say)
+        from . import __version__
+
+        stage.write_manifest({"tool": f"{PROG} ps", "torch_hsh_version": __version__,
+                              "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                              "arguments": _jsonable({k: v for k, v in vars(args).items() if k not in ("handler", "parser")})})
+        written = sorted(stage.files + [MANIFEST])
+        stage.commit()
+    if figures is not None:
+        figures.mkdir(parents=True, exist_ok=True)
+        for f in written:
+            if f.endswith(".png"):
+                shutil.copyfile(out / f, figures / f"ps_{f}")
+    say(f"\nwrote {out}/ ({', '.join(written)})")
+    return _jsonable(metrics)
+
+
+# --------------------------------------------------------------------------- #
+# fit
+# --------------------------------------------------------------------------- #
+def _fit_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "fit", help="project a MERL .binary BRDF onto the isotropic Helmholtz basis",
+        description="Project a MERL .binary BRDF onto the isotropic Helmholtz basis (deterministic quadrature) "
+                    "and write the (3, K) RGB coefficients to an .npz file with the energy accuracy Acc(P).",
+    )
+    p.add_argument("merl", help="MERL .binary file")
+    p.add_argument("--order", type=_int_in(0, 12), default=6, help="basis order P (default 6)")
+    p.add_argument("--out", required=True, help="output .npz file (refused if it exists unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    p.add_argument("--threads", type=_int_in(1, 1024), default=2)
+    _add_common(p)
+    p.set_defaults(handler=_run_fit, parser=p)
+    return p
+
+
+def _run_fit(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
+    from .fitting import brdf_energy, energy_accuracy, project
+    from .io.merl import read_merl
+
+    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+    out = Path(os.path.abspath(args.out))
+    if out.suffix != ".npz":
+        ap.error(f"argument --out: expected a .npz file name, got {out.name}")
+    if out.is_dir():
+        ap.error(f"argument --out: {out} is a folder")
+    if out.exists() and not args.overwrite:
+        ap.error(f"argument --out: {out} exists; pass --overwrite to replace it")
+    anc = out.parent
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir() or not os.access(anc, os.W_OK | os.X_OK):
+        ap.error(f"argument --out: cannot write into {anc}")
+    torch.set_num_threads(args.threads)
+    try:
+        brdf = read_merl(args.merl)
+    except (ValueError, OSError, TypeError) as err:
+        raise InputError(str(err)) from err
+    t = time.perf_counter()
+    coeffs = project(brdf, order=args.order).detach().cpu()  # (3, K)
+    energy = brdf_energy(brdf, order=args.order).detach().cpu()
+    acc = energy_accuracy(coeffs, energy)
+    summary = {"file": str(args.merl), "order": args.order, "num_functions": int(coeffs.shape[-1]),
+               "energy_accuracy": acc.tolist(), "runtime_s": time.perf_counter() - t}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=".npz", dir=out.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, coefficients=coeffs.numpy(), energy=energy.numpy(), energy_accuracy=acc.numpy(),
+                     metadata=np.array(json.dumps(_jsonable(summary), allow_nan=False)))
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    say(f"order {args.order}: {coeffs.shape[-1]} functions x 3 channels; "
+        f"Acc(P) = {', '.join(f'{v:.4f}' for v in acc.mean(0).tolist())} (mean over RGB)")
+    say(f"wrote {out}")
+    return _jsonable(summary)
+
+
+# --------------------------------------------------------------------------- #
+# entry points
+# --------------------------------------------------------------------------- #
+def build_parser() -> argparse.ArgumentParser:
+    """The ``torch-hsh`` argument parser (subcommands ``ps`` and ``fit``)."""
+    from . import __version__
+
+    ap = argparse.ArgumentParser(prog=PROG, description="Helmholtz HSH BRDF tools (torch_hsh).")
+    ap.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    sub = ap.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    _ps_parser(sub)
+    _fit_parser(sub)
+    return ap
+
+
+def _dispatch(argv: Optional[List[str]]):
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    sub_ap = args.parser  # errors carry the subcommand's usage
+    prefix = f"{PROG} {args.command}: error:"
+    try:
+        return args.handler(args, sub_ap)
+    except SystemExit:
+        raise
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print(f"{prefix} interrupted; the previous output (if any) is unchanged", file=sys.stderr)
+        raise SystemExit(130) from None
+    except Exception as err:  # one line, traceback only with --debug
+        if args.debug:
+            traceback.print_exc()
+        else:
+            msg = " ".join(str(err).split()) or type(err).__name__
+            hint = "" if isinstance(err, InputError) else f" ({type(err).__name__}; --debug shows the traceback)"
+            print(f"{prefix} {msg}{hint}", file=sys.stderr)
+        raise SystemExit(1) from None
+
+
+def ps_main(argv: Optional[List[str]] = None) -> Dict[str, Any]:
+    """``torch-hsh ps`` in-process: returns the metrics dict; errors raise ``SystemExit(1 or 2)``."""
+    return _dispatch(["ps"] + list(sys.argv[1:] if argv is None else argv))
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Console entry point of ``torch-hsh``; returns the exit status (errors raise ``SystemExit``)."""
+    _dispatch(argv)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
