@@ -17,7 +17,7 @@ def _load_example():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("materials", ["2", "0"])
+@pytest.mark.parametrize("materials", ["2", "0", "auto"])
 def test_demo_output_contract(tmp_path, materials):
     mod = _load_example()
     out = tmp_path / "out"
@@ -28,7 +28,10 @@ def test_demo_output_contract(tmp_path, materials):
     for key in ("method", "order", "pixels", "lights", "runtime_s", "mean_angular_error_deg",
                 "median_angular_error_deg", "lambertian_mean_angular_error_deg"):
         assert key in m, key
-    assert m["materials"] == (None if materials == "0" else int(materials))
+    assert m["materials"] == {"0": None, "auto": "auto"}.get(materials, int(materials) if materials.isdigit() else None)
+    if materials == "auto":  # the choice and the criterion are reported
+        info = m["solver_info"]
+        assert info["materials_chosen"] in (1, 2, 3, 4) and len(info["materials_criterion"]) == 4
     n = np.load(out / "normals.npy")
     assert n.dtype == np.float32 and n.shape == (28, 28, 3)
     # the non-Lambertian solver beats Lambertian least squares on the analytic-BRDF scene

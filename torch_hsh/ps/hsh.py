@@ -28,6 +28,7 @@ stage  module                      returns             what it does
 =====  ==========================  ==================  =====================================
 1      :mod:`.observations`        ``Observations``    flatten, normalise, noise / saturation / shadow weights
 2      :mod:`.initialisation`      ``(P, 3)`` normals  robust Lambertian start
+3a     :mod:`.materials`           ``M``, criterion    ``materials="auto"``: ``M`` by held-out-light cross-validation
 3      :mod:`.calibration`         ``Calibration``     shared basis BRDFs on a pixel subset (shared model)
 4      :mod:`.refinement`          ``Refinement``      per-pixel normals (and mixing weights), in chunks
 5      :mod:`.coefficients`        ``Coefficients``    final coefficients, non-negativity safeguard
@@ -40,8 +41,9 @@ Memory is bounded by ``O(chunk_size * L * K)`` in stages 4 and 5.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
-from typing import Dict, Optional, Sequence
+from typing import Dict, Optional, Sequence, Union
 
 import torch
 
@@ -51,9 +53,10 @@ from .coefficients import fit_coefficients
 from .initialisation import initial_normals
 from .lambertian import _solve_flat
 from .observations import observation_weights, observe
+from .materials import select_materials
 from .refinement import refine
 from .result import HoldoutResult, HSHResult, directional_albedo_view, holdout_evaluation
-from .settings import DEFAULT_MATERIALS, DEFAULT_ORDER, Settings
+from .settings import AUTO, DEFAULT_MATERIALS, DEFAULT_ORDER, Settings
 
 __all__ = [
     "HSHResult",
@@ -73,7 +76,7 @@ def solve_hsh(
     intensities: Optional[torch.Tensor] = None,
     mask: Optional[torch.Tensor] = None,
     order: int = DEFAULT_ORDER,
-    materials: Optional[int] = DEFAULT_MATERIALS,
+    materials: Union[int, str, None] = DEFAULT_MATERIALS,
     init: Optional[torch.Tensor] = None,
     ridge: float = 0.1,
     search_angles: Sequence[float] = (8.0, 16.0),
@@ -127,8 +130,24 @@ def solve_hsh(
         intensities: ``None``, ``(L,)`` or ``(L, C)`` light intensities (images are divided by them).
         mask: ``(H, W)`` / ``(P,)`` bool object mask (default: every pixel).
         order: basis order ``P`` (default 3: ``K = 20`` coefficients per channel).
-        materials: number ``M`` of shared basis BRDFs (1..8), or ``None`` for
-            independent per-pixel BRDFs.
+        materials: number ``M`` of shared basis BRDFs (1..8), ``"auto"`` to
+            choose ``M`` in 1..4 from the data, or ``None`` for independent
+            per-pixel BRDFs. ``"auto"`` (:mod:`torch_hsh.ps.materials`)
+            cross-validates held-out lights on up to 256 pixels of the
+            calibration subset: for each ``M``, a short calibration on every
+            light fixes the subset normals, then the basis BRDFs and mixing
+            weights are refitted without each of 3 folds of lights (interleaved
+            in azimuth) and predict them; the criterion is the mean Cauchy loss
+            ``log(1 + (r / (c s))^2)`` of the held-out residuals at one scale
+            ``s`` for every ``M``. It keeps the smallest ``M`` within one
+            standard error (over pixels) of the best (the one-standard-error
+            rule), then calibrates that ``M`` as usual. ``info`` gets
+            ``materials_chosen``, ``materials_criterion`` (one value per
+            ``M = 1..4``, lower is better), ``materials_criterion_se``,
+            ``materials_criterion_scale`` and ``time_materials_s``. It counts
+            the basis BRDFs needed to predict other lights at this ``order``:
+            more than the physical materials when the order truncates their
+            lobes. Needs at least 6 lights.
         init: optional ``(*S, 3)`` starting normals (default: robust Lambertian).
         ridge: relative ridge strength ``lambda`` on the per-pixel coefficients
             (independent model) or on the per-pixel residual ``delta``
@@ -185,8 +204,8 @@ def solve_hsh(
         wall time of each stage (``time_<stage>_s``).
 
     Raises:
-        ValueError: shape mismatches, fewer than 3 lights, empty mask, bad
-            order or number of materials.
+        ValueError: shape mismatches, fewer than 3 lights (6 for
+            ``materials="auto"``), empty mask, bad order or number of materials.
 
     Example:
         >>> res = solve_hsh(images, lights, mask=mask, order=3)  # doctest: +SKIP
@@ -215,6 +234,11 @@ def solve_hsh(
     n_start = n_init
     clock.lap("initialisation")
     cal = None
+    if cfg.materials == AUTO:
+        sel = select_materials(obs, n_start, cfg)  # 3a
+        obs.info.update(sel.info())
+        cfg = dataclasses.replace(cfg, materials=sel.chosen)
+        clock.lap("materials")
     if cfg.materials is not None:
         cal = calibrate(obs, n_start, cfg)  # 3
         n_start = cal.start_normals(n_start)

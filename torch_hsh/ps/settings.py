@@ -2,13 +2,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Tuple
+import math
+import numbers
+from typing import Optional, Tuple, Union
 
 import torch
 
 from .._checks import check_order
 
-__all__ = ["Settings", "DEFAULT_ORDER", "DEFAULT_MATERIALS", "CAUCHY_C"]
+__all__ = ["Settings", "DEFAULT_ORDER", "DEFAULT_MATERIALS", "CAUCHY_C", "AUTO"]
 
 #: Default basis order: 3 (K = 20 functions per channel). With the view fixed
 #: (orthographic camera) only (P+1)(P+2)/2 = 10 combinations per channel are
@@ -21,6 +23,10 @@ DEFAULT_ORDER = 3
 #: specular reflection with its own colour) with free RGB weights per pixel.
 DEFAULT_MATERIALS = 2
 
+#: Value of ``materials`` that selects the number of basis BRDFs from the data
+#: (held-out-light cross-validation, :mod:`torch_hsh.ps.materials`).
+AUTO = "auto"
+
 #: Cauchy constant of every robust reweighting (95 % efficiency at Gaussian noise).
 CAUCHY_C = 2.385
 
@@ -30,7 +36,7 @@ class Settings:
     """Every option of :func:`~torch_hsh.ps.solve_hsh`, validated (see its docstring for the meaning)."""
 
     order: int
-    materials: Optional[int]
+    materials: Union[int, str, None]
     ridge: float
     search_angles: Tuple[float, ...]
     search_azimuths: int
@@ -68,12 +74,7 @@ class Settings:
         progress,
     ) -> "Settings":
         order = check_order(order)
-        if materials is not None:
-            if isinstance(materials, bool) or int(materials) != materials or not 1 <= int(materials) <= 8:
-                raise ValueError(
-                    f"`materials` must be an integer in [1, 8] or None (independent BRDFs), got {materials!r}"
-                )
-            materials = int(materials)
+        materials = _check_materials(materials)
         if not ridge > 0:
             raise ValueError(f"`ridge` must be > 0 (it keeps the rank-deficient normal equations solvable), got {ridge}")
         if int(chunk_size) < 1:
@@ -112,3 +113,21 @@ class Settings:
             seed=seed,
             progress=progress,
         )
+
+
+def _check_materials(materials):
+    """``materials``: an integer in [1, 8], ``"auto"`` or ``None``; anything else is a ValueError naming it."""
+    if materials is None or (isinstance(materials, str) and materials == AUTO):
+        return materials
+    if (
+        isinstance(materials, (bool, str))
+        or not isinstance(materials, numbers.Real)
+        or not math.isfinite(materials)
+        or int(materials) != materials
+        or not 1 <= int(materials) <= 8
+    ):
+        raise ValueError(
+            f"`materials` must be an integer in [1, 8], 'auto' (chosen from the data) or None (independent "
+            f"BRDFs), got {materials!r}"
+        )
+    return int(materials)
