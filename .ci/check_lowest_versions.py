@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     torch_spec = os.environ.get("TORCH_SPEC", "torch==2.13.0")
     meta = _load_pyproject(ROOT / "pyproject.toml")["project"]
     pins = lowest_pins(meta["dependencies"] + meta["optional-dependencies"]["examples"], torch_spec)
-    venv = Path(args.venv)
+    venv = Path(args.venv).resolve()  # the tests run from tests/: a relative path would break
     py = venv / "bin" / "python"
     t0 = time.perf_counter()
     if not py.exists() and run([args.python, "-m", "venv", str(venv)]):
