@@ -54,6 +54,13 @@ def _sky(h, w, seed=2):
 
 
 # --------------------------------------------------------------------------- spherical harmonics
+def _sph_harm_y(n, m, theta, phi):
+    """scipy's complex SH, polar angle ``theta``; ``sph_harm_y`` (scipy >= 1.15) or the older ``sph_harm``."""
+    if hasattr(sp, "sph_harm_y"):
+        return sp.sph_harm_y(n, m, theta, phi)
+    return sp.sph_harm(m, n, phi, theta)  # older argument order: (m, n, azimuth, polar)
+
+
 def test_real_sh_matches_scipy_at_random_points():
     rng = np.random.default_rng(0)
     v = rng.normal(size=(200, 3))
@@ -63,7 +70,7 @@ def test_real_sh_matches_scipy_at_random_points():
     ours = real_sh(torch.from_numpy(v), N).numpy()
     for l in range(N + 1):
         for m in range(-l, l + 1):
-            y = sp.sph_harm_y(l, abs(m), theta, phi)  # complex, with the Condon-Shortley phase
+            y = _sph_harm_y(l, abs(m), theta, phi)  # complex, with the Condon-Shortley phase
             if m > 0:
                 ref = math.sqrt(2) * (-1) ** m * y.real
             elif m < 0:
