@@ -69,6 +69,8 @@ in a few seconds with scipy + pyamg).
 """
 from __future__ import annotations
 
+import inspect
+
 import math
 import time
 from typing import Dict, Optional, Tuple
@@ -371,7 +373,9 @@ def _solve_scipy_impl(edges, m, anchors, z0, tol, max_iter, cache):
         def _cb(_):
             count[0] += 1
 
-        x, _ = spla.cg(Lmat, b, x0=x0, rtol=tol, maxiter=max_iter, M=cache["ml"].aspreconditioner(), callback=_cb)
+        # scipy >= 1.12 names the relative tolerance `rtol`; older releases call it `tol`
+        tol_kw = {"rtol": tol} if "rtol" in inspect.signature(spla.cg).parameters else {"tol": tol}
+        x, _ = spla.cg(Lmat, b, x0=x0, maxiter=max_iter, M=cache["ml"].aspreconditioner(), callback=_cb, **tol_kw)
         its = count[0]
         if its > max(2 * cache["iterations"], 15):
             cache["ml"] = None  # the weights drifted: rebuild next time
