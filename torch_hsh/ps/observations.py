@@ -405,7 +405,10 @@ def observe(
     info["invalid_fraction"] = float((~d.valid).sum()) / max(P * L, 1)
     info["underdetermined_pixels"] = int((w0.sum(-1) < 3).sum())
     # global scale: a power of two near the median valid observation (exact division)
-    g = strided_sample(d.y.mean(-1)[w0 > 0], 2_000_000) if bool((w0 > 0).any()) else d.y.new_ones(1)
+    # (sampled chunk by chunk: a full (P, L) channel mean would be the largest temporary of the solve)
+    per = max(1, 2_000_000 // max(len(chunks), 1))
+    parts = [strided_sample(d.y[sl].mean(-1)[w0[sl] > 0], per) for sl in chunks]
+    g = torch.cat(parts) if parts and sum(p.numel() for p in parts) > 0 else d.y.new_ones(1)
     med = float(g.abs().median())
     scale = 2.0 ** round(math.log2(med)) if med > 0 and math.isfinite(med) else 1.0
     if scale != 1.0:
