@@ -307,15 +307,16 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     # (ref.fit_weights is the observation-weight tensor for the shared model), and build the two large
     # maps one at a time, dropping each flat source as soon as its map exists
     obs.data.y = obs.data.y.new_empty(0)
+    obs.data.valid = obs.data.valid.new_empty(0)
     obs.weights = obs.weights.new_empty(0)
     ref.fit_weights = ref.fit_weights.new_empty(0)
-    weights_map = scatter_pixels(ref.weights, d.mask)
-    ref.weights = ref.weights.new_empty(0)
     s = obs.scale  # the solver ran at unit brightness: coefficients are linear in the images
     coefs = fit.coefficients.mul_(s)
     albedo = directional_albedo_view(coefs, normals[:, 2])
     coef_map = scatter_pixels(coefs, d.mask)
     fit.coefficients = coefs = coefs.new_empty(0)
+    weights_map = scatter_pixels(ref.weights, d.mask)
+    ref.weights = ref.weights.new_empty(0)
     info["lm_iterations"] = float(ref.iterations)
     info["chunks"] = float(ref.chunks)
     info["moved_pixels"] = float(ref.moved)
