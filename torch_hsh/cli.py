@@ -491,14 +491,6 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def _supports_auto_materials() -> bool:
-    import inspect
-
-    from .ps import settings
-
-    return "auto" in inspect.getsource(settings)
-
-
 def _save_surface(stage, args, res, mask, metrics, say) -> None:
     """depth.npy + depth.exr (``--depth``), mesh.ply / mesh.obj (``--mesh``) and surface.png from the normals."""
     from .io.diligent import _write_png
@@ -557,8 +549,6 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
             import trimesh  # noqa: F401
         except ImportError:
             ap.error("argument --mesh: needs trimesh (pip install 'torch-hsh[mesh]')")
-    if materials == "auto" and not _supports_auto_materials():
-        ap.error("argument --materials: 'auto' needs a torch_hsh.ps that supports materials='auto'")
     data = _load_data(args, ap)
     L = int(data["images"].shape[0])
     if args.holdout and not 1 <= args.holdout <= L - 3:

@@ -82,9 +82,9 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
     d = obs.data
     P, L, C = d.y.shape
     dev, dt = d.y.device, d.dtype
-    K = ridge_profile(cfg.order, dt, dev).shape[0]
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
     profile = ridge_profile(cfg.order, dt, dev)
+    K = profile.shape[0]
     coefs = torch.empty(P, C, K, dtype=dt, device=dev)
     resid = torch.empty(P, dtype=dt, device=dev)
     # the safeguard's stacked designs (lights + 48 virtual lights, float64) are the largest
