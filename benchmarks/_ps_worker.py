@@ -67,6 +67,7 @@ def main():
     ap.add_argument("--max-pixels", type=int, default=None)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--cast-shadows", type=int, default=0)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     from torch_hsh import ps
@@ -106,6 +107,8 @@ def main():
     kw = {}
     if args.order is not None:
         kw["order"] = args.order
+    if args.cast_shadows:
+        kw["cast_shadows"] = args.cast_shadows
     if args.materials != "default":
         kw["materials"] = None if args.materials == "none" else (args.materials if args.materials == "auto" else int(args.materials))
     import torch_hsh

@@ -4,6 +4,7 @@ Usage:
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat ../shared/data/diligent_harvest
     python benchmarks/bench_diligent.py /path/to/DiLiGenT/pmsData --drop-first 20 --seeds 0 1 2 3 4
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat --baseline   # + the 6d85856 solver
+    python benchmarks/bench_diligent.py ../shared/data/diligent_harvest --cast-shadows 1  # + the shadow loop
 
 Arguments are object folders (``light_directions.txt``, images, ``mask.png``,
 ``Normal_gt.mat``) or the root of a DiLiGenT download (every ``*PNG`` folder
@@ -14,7 +15,9 @@ their spread (max - min of the mean error). Published mean errors of the
 DiLiGenT benchmark (Shi et al., TPAMI 2019: baseline least squares, ST14 and
 IA14, as quoted in the project's issue tracker) are printed beside objects
 whose name matches. Every solve runs in its own process (``_ps_worker.py``),
-so peak memory per solve is reported too.
+so peak memory per solve is reported too. ``--cast-shadows R`` adds a row
+for the solver with ``R`` rounds of the cast-shadow loop (``solve_hsh(...,
+cast_shadows=R)``) beside the default solver, with the same seeds.
 """
 from __future__ import annotations
 
@@ -74,6 +77,8 @@ def main(argv=None):
     ap.add_argument("--baseline", action="store_true", help="also run the baseline solver (6d85856 + linspace fix)")
     ap.add_argument("--baseline-seeds", type=int, nargs="+", default=None,
                     help="seeds of the baseline runs (default: the same as --seeds)")
+    ap.add_argument("--cast-shadows", type=int, default=0,
+                    help="R > 0: also run the solver with R rounds of the cast-shadow loop")
     ap.add_argument("--json", default=None, help="write every record to this JSON file")
     args = ap.parse_args(argv)
     if args.drop_first < 0:
@@ -85,17 +90,23 @@ def main(argv=None):
         common += ["--max-pixels", args.max_pixels]
     if args.order is not None:
         common += ["--order", args.order]
-    trees = [("HSH", ROOT)] + ([("HSH 6d85856", baseline_tree())] if args.baseline else [])
+    if args.cast_shadows < 0:
+        ap.error("--cast-shadows must be >= 0")
+    trees = [("HSH", ROOT, [])]
+    if args.cast_shadows:
+        trees.append((f"HSH + shadows x{args.cast_shadows}", ROOT, ["--cast-shadows", args.cast_shadows]))
+    if args.baseline:
+        trees.append(("HSH 6d85856", baseline_tree(), []))
     records = {}
     for obj in expand(args.paths):
         name = object_name(obj)
         rec = {"lambertian": run_worker(["--data", obj, "--methods", "ls,trimmed", *common])}
-        for label, tree in trees:
+        for label, tree, extra in trees:
             runs = []
             seeds = args.seeds if tree is ROOT or args.baseline_seeds is None else args.baseline_seeds
             for s in seeds:
                 mat = args.materials if tree is ROOT else ("default" if args.materials == "auto" else args.materials)
-                r = run_worker(["--data", obj, "--methods", "hsh", "--seed", s, "--materials", mat, *common], tree)
+                r = run_worker(["--data", obj, "--methods", "hsh", "--seed", s, "--materials", mat, *extra, *common], tree)
                 runs.append(r)
                 m = r["methods"]["hsh"]
                 print(f"  {name} {label} seed {s}: mean {m['mean']:.2f} median {m['median']:.2f} "

@@ -1,9 +1,10 @@
 """Stage 5 of the HSH solver: final coefficients with the non-negativity safeguard.
 
 Takes the observations and the refined normals; returns per-pixel isotropic
-Helmholtz coefficients ``(P, C, K)`` (ridge least squares; for the shared
-model shrunk toward the mix of the basis BRDFs and fitted to every valid
-observation) and the weighted RMS residual. The safeguard penalises the
+Helmholtz coefficients (ridge least squares; for the shared model shrunk
+toward the mix of the basis BRDFs and fitted to every valid observation),
+written chunk by chunk straight into the rows of the output map, so that no
+second ``(P, C, K)`` copy ever exists, and the weighted RMS residual. The safeguard penalises the
 rendered BRDF where it is negative at the lights and at a fixed hemisphere of
 virtual lights.
 """
@@ -65,9 +66,18 @@ def final_coefficients(ch: PixelProblem, n, nonneg: bool, prior=None, gamma: flo
 
 @dataclass
 class Coefficients:
-    """State after stage 5: ``coefficients (P, C, K)`` and the weighted RMS ``residual (P,)`` of their fit."""
+    """State after stage 5.
+
+    Attributes:
+        coefficients: ``(N, C, K)`` coefficient map with one row per pixel of
+            the mask's frame (``N = mask.numel()``, zero outside the mask); the
+            result stage reshapes it to ``(*S, C, K)`` without a copy.
+        pixels: ``(P,)`` int64 rows of the masked pixels in that map (solver order).
+        residual: ``(P,)`` weighted RMS residual of the fit.
+    """
 
     coefficients: torch.Tensor
+    pixels: torch.Tensor
     residual: torch.Tensor
 
 
@@ -85,7 +95,9 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
     profile = ridge_profile(cfg.order, dt, dev)
     K = profile.shape[0]
-    coefs = torch.empty(P, C, K, dtype=dt, device=dev)
+    # int64 rows of the masked pixels: the map is written in place, chunk by chunk
+    pixels = d.mask.reshape(-1).nonzero().squeeze(1)
+    coefs = torch.zeros(d.mask.numel(), C, K, dtype=dt, device=dev)
     resid = torch.empty(P, dtype=dt, device=dev)
     # the safeguard's stacked designs (lights + 48 virtual lights, float64) are the largest
     # temporaries of the solve: a smaller chunk than the refinement's bounds them
@@ -108,5 +120,5 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
                 a = final_coefficients(ch, n, cfg.nonneg, Phi=Phi)
             r = (ch.y - Phi @ a) * ch.sw.unsqueeze(-1)
             resid[sl] = ((r * r).sum((-1, -2)) / (ch.w.sum(-1).clamp(min=1e-12) * C)).sqrt()
-            coefs[sl] = a.transpose(1, 2)
-    return Coefficients(coefficients=coefs, residual=resid)
+            coefs[pixels[sl]] = a.transpose(1, 2)
+    return Coefficients(coefficients=coefs, pixels=pixels, residual=resid)

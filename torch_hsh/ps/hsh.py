@@ -286,6 +286,9 @@ def _peak_rss_mb() -> Optional[float]:
         return None
 
 
+#: Pixels per chunk when the result stage reads the albedo from the coefficient map.
+_ALBEDO_CHUNK = 65536
+
 #: A pixel needs this many valid observations for the HSH model; with fewer it
 #: keeps the robust Lambertian normal (and gets confidence 0).
 MIN_VALID_OBSERVATIONS = 4
@@ -313,10 +316,14 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     weights_map = scatter_pixels(ref.weights, d.mask)
     ref.weights = ref.weights.new_empty(0)
     s = obs.scale  # the solver ran at unit brightness: coefficients are linear in the images
-    coefs = fit.coefficients.mul_(s)
-    albedo = directional_albedo_view(coefs, normals[:, 2])
-    coef_map = scatter_pixels(coefs, d.mask)
-    fit.coefficients = coefs = coefs.new_empty(0)
+    # the coefficient stage wrote the map's rows in place: scale it and read the albedo chunk by chunk
+    coef_rows = fit.coefficients.mul_(s)
+    albedo = torch.cat([directional_albedo_view(coef_rows[fit.pixels[i:i + _ALBEDO_CHUNK]],
+                                                normals[i:i + _ALBEDO_CHUNK, 2])
+                        for i in range(0, normals.shape[0], _ALBEDO_CHUNK)]) if normals.shape[0] else \
+        coef_rows.new_zeros(0, coef_rows.shape[1])
+    coef_map = coef_rows.reshape(*d.mask.shape, *coef_rows.shape[1:])
+    fit.coefficients = coef_rows = coef_rows.new_empty(0)
     info["lm_iterations"] = float(ref.iterations)
     info["chunks"] = float(ref.chunks)
     info["moved_pixels"] = float(ref.moved)
