@@ -191,6 +191,31 @@ def test_threshold_arguments_are_validated(bad):
         ps.solve_hsh(img, l, **bad)
 
 
+def test_coefficient_buffer_choice_follows_the_lower_peak():
+    from torch_hsh.ps.coefficients import _write_map_in_place
+
+    # 1024^2 x 96 RGB float32 observations, 667k masked pixels, float64 coefficients: compact buffer
+    assert not _write_map_in_place(667_064, 1024 * 1024, 96, 3, 20, 4, 8)
+    # 2048^2 x 16: the map is written in place
+    assert _write_map_in_place(2_670_000, 2048 * 2048, 16, 3, 20, 4, 8)
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_coefficient_map_is_the_same_written_in_place_or_scattered(in_place, monkeypatch):
+    from torch_hsh.ps import coefficients
+
+    img, l, _ = _scene(p=64, l=20, seed=8)
+    img = img.reshape(20, 8, 8, 3)
+    mask = torch.zeros(8, 8, dtype=torch.bool)
+    mask[2:7, 1:6] = True
+    mask[4, 3] = False
+    ref = ps.solve_hsh(img, l, mask=mask, **FAST)
+    monkeypatch.setattr(coefficients, "_write_map_in_place", lambda *a: in_place)
+    r = ps.solve_hsh(img, l, mask=mask, **FAST)
+    assert torch.equal(r.coefficients, ref.coefficients) and torch.equal(r.albedo, ref.albedo)
+    assert bool((r.coefficients[~mask] == 0).all()) and bool((r.coefficients[mask] != 0).any())
+
+
 def test_float32_images_are_held_in_float32():
     img, l, _ = _scene(p=40, l=12, seed=11)
     d = prepare_inputs(img.float(), l.float(), dtype=torch.float64)

@@ -2,9 +2,11 @@
 
 Takes the observations and the refined normals; returns per-pixel isotropic
 Helmholtz coefficients (ridge least squares; for the shared model shrunk
-toward the mix of the basis BRDFs and fitted to every valid observation),
-written chunk by chunk straight into the rows of the output map, so that no
-second ``(P, C, K)`` copy ever exists, and the weighted RMS residual. The safeguard penalises the
+toward the mix of the basis BRDFs and fitted to every valid observation) and
+the weighted RMS residual. Memory: the coefficients go either into a compact
+``(P, C, K)`` buffer (scattered into the output map by the result stage, once
+the observations are released) or, when that gives the lower peak, straight
+into the rows of the output map (:func:`_write_map_in_place`). The safeguard penalises the
 rendered BRDF where it is negative at the lights and at a fixed hemisphere of
 virtual lights.
 """
@@ -69,16 +71,33 @@ class Coefficients:
     """State after stage 5.
 
     Attributes:
-        coefficients: ``(N, C, K)`` coefficient map with one row per pixel of
-            the mask's frame (``N = mask.numel()``, zero outside the mask); the
-            result stage reshapes it to ``(*S, C, K)`` without a copy.
-        pixels: ``(P,)`` int64 rows of the masked pixels in that map (solver order).
+        coefficients: either ``(P, C, K)`` (one row per masked pixel, solver
+            order; ``pixels`` is ``None``) or the ``(N, C, K)`` rows of the
+            output map (``N = mask.numel()``, zero outside the mask).
+        pixels: ``None``, or ``(P,)`` int64 rows of the masked pixels in that map.
         residual: ``(P,)`` weighted RMS residual of the fit.
     """
 
     coefficients: torch.Tensor
-    pixels: torch.Tensor
+    pixels: Optional[torch.Tensor]
     residual: torch.Tensor
+
+
+def _write_map_in_place(P: int, N: int, L: int, C: int, K: int, obs_bytes: int, dt_bytes: int) -> bool:
+    """Whether writing the ``(N, C, K)`` output map directly gives a lower peak than a compact buffer.
+
+    Compact: the stage holds ``F = P C K`` values and the result stage later
+    holds the buffer and the map together, but without the observations ``(P,
+    L, C)`` and their weights ``(P, L)`` (``obs_bytes`` per value), which it
+    releases first: extra peak ``F + max(0, Map - Y - W0)``. In place: extra
+    peak ``Map`` during this stage. With many lights the observations dominate
+    and the compact buffer wins (1024^2 x 96); with few lights and a large
+    frame the map wins (2048^2 x 16).
+    """
+    f = P * C * K * dt_bytes
+    m = N * C * K * dt_bytes
+    y = P * L * (C + 1) * obs_bytes
+    return m < f + max(0, m - y)
 
 
 def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
@@ -95,9 +114,13 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
     profile = ridge_profile(cfg.order, dt, dev)
     K = profile.shape[0]
-    # int64 rows of the masked pixels: the map is written in place, chunk by chunk
-    pixels = d.mask.reshape(-1).nonzero().squeeze(1)
-    coefs = torch.zeros(d.mask.numel(), C, K, dtype=dt, device=dev)
+    itemsize = torch.empty(0, dtype=dt).element_size()
+    pixels = None
+    if _write_map_in_place(P, d.mask.numel(), L, C, K, d.y.element_size(), itemsize):
+        pixels = d.mask.reshape(-1).nonzero().squeeze(1)  # int64 rows of the masked pixels in the map
+        coefs = torch.zeros(d.mask.numel(), C, K, dtype=dt, device=dev)
+    else:
+        coefs = torch.empty(P, C, K, dtype=dt, device=dev)
     resid = torch.empty(P, dtype=dt, device=dev)
     # the safeguard's stacked designs (lights + 48 virtual lights, float64) are the largest
     # temporaries of the solve: a smaller chunk than the refinement's bounds them
@@ -120,5 +143,8 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
                 a = final_coefficients(ch, n, cfg.nonneg, Phi=Phi)
             r = (ch.y - Phi @ a) * ch.sw.unsqueeze(-1)
             resid[sl] = ((r * r).sum((-1, -2)) / (ch.w.sum(-1).clamp(min=1e-12) * C)).sqrt()
-            coefs[pixels[sl]] = a.transpose(1, 2)
+            if pixels is None:
+                coefs[sl] = a.transpose(1, 2)
+            else:
+                coefs[pixels[sl]] = a.transpose(1, 2)
     return Coefficients(coefficients=coefs, pixels=pixels, residual=resid)

@@ -316,13 +316,17 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     weights_map = scatter_pixels(ref.weights, d.mask)
     ref.weights = ref.weights.new_empty(0)
     s = obs.scale  # the solver ran at unit brightness: coefficients are linear in the images
-    # the coefficient stage wrote the map's rows in place: scale it and read the albedo chunk by chunk
+    # the coefficients are either compact (P, C, K) rows or the map's rows, written in place by stage 5
     coef_rows = fit.coefficients.mul_(s)
-    albedo = torch.cat([directional_albedo_view(coef_rows[fit.pixels[i:i + _ALBEDO_CHUNK]],
-                                                normals[i:i + _ALBEDO_CHUNK, 2])
-                        for i in range(0, normals.shape[0], _ALBEDO_CHUNK)]) if normals.shape[0] else \
-        coef_rows.new_zeros(0, coef_rows.shape[1])
-    coef_map = coef_rows.reshape(*d.mask.shape, *coef_rows.shape[1:])
+    pix = fit.pixels
+    albedo = coef_rows.new_empty(normals.shape[0], coef_rows.shape[1])
+    for i in range(0, normals.shape[0], _ALBEDO_CHUNK):
+        rows = coef_rows[i:i + _ALBEDO_CHUNK] if pix is None else coef_rows[pix[i:i + _ALBEDO_CHUNK]]
+        albedo[i:i + _ALBEDO_CHUNK] = directional_albedo_view(rows, normals[i:i + _ALBEDO_CHUNK, 2])
+    if pix is None:
+        coef_map = scatter_pixels(coef_rows, d.mask)
+    else:
+        coef_map = coef_rows.reshape(*d.mask.shape, *coef_rows.shape[1:])
     fit.coefficients = coef_rows = coef_rows.new_empty(0)
     info["lm_iterations"] = float(ref.iterations)
     info["chunks"] = float(ref.chunks)
@@ -371,7 +375,7 @@ def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, orde
       pixel's residual, the same weight the solver gives an observation.
     """
     U = (order + 1) * (order + 2) // 2
-    n_eff = weights.to(residual.dtype).sum(-1)
+    n_eff = weights.sum(-1, dtype=residual.dtype)  # no float64 copy of the (P, L) weights
     cover = ((n_eff - 3.0) / max(U - 3, 1)).clamp(0.0, 1.0)
     sc = max(float(scale), 1e-30)
     fit = 1.0 / (1.0 + (residual / (c * sc)) ** 2)
