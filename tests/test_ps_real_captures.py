@@ -216,6 +216,36 @@ def test_coefficient_map_is_the_same_written_in_place_or_scattered(in_place, mon
     assert bool((r.coefficients[~mask] == 0).all()) and bool((r.coefficients[mask] != 0).any())
 
 
+def test_given_basis_skips_the_calibration_and_reproduces_the_solve():
+    img, l, n = _scene(p=200, l=24, seed=3)
+    r = ps.solve_hsh(img, l, **FAST)
+    r2 = ps.solve_hsh(img, l, basis=r.basis_brdfs, robust_scale=r.info["robust_scale"], init=r.normals, **FAST)
+    assert r2.info["basis_given"] == 1.0 and r2.info["calibration_pixels"] == 0.0
+    assert r2.info["robust_scale"] == pytest.approx(r.info["robust_scale"], rel=1e-12)
+    assert torch.allclose(r2.basis_brdfs, r.basis_brdfs)
+    # from the first solve's normals, the per-pixel pass stays there
+    assert float(ps.angular_error(r2.normals, r.normals).mean()) < 0.5
+    # in other image units, with the scale estimated: same normals up to the estimate
+    r3 = ps.solve_hsh(img * 1000.0, l, basis=r.basis_brdfs, init=r.normals, **FAST)
+    assert r3.info["robust_scale_estimated"] == 1.0
+    assert float(ps.angular_error(r3.normals, n).mean()) < float(ps.angular_error(r.normals, n).mean()) + 1.0
+
+
+@pytest.mark.parametrize("kw, name", [
+    (dict(basis=torch.zeros(2, 20, dtype=DT)), "basis"),
+    (dict(basis=torch.full((2, 20), float("nan"), dtype=DT)), "basis"),
+    (dict(basis=torch.ones(2, 10, dtype=DT)), "basis"),
+    (dict(basis=torch.ones(2, 20, dtype=DT), materials=None), "materials"),
+    (dict(basis=torch.ones(2, 20, dtype=DT), materials="auto"), "materials"),
+    (dict(basis=torch.ones(2, 20, dtype=DT), robust_scale=-1.0), "robust_scale"),
+    (dict(robust_scale=1.0), "robust_scale"),
+])
+def test_given_basis_arguments_are_validated(kw, name):
+    img, l, _ = _scene(p=10, l=8)
+    with pytest.raises(ValueError, match=name):
+        ps.solve_hsh(img, l, **kw)
+
+
 def test_float32_images_are_held_in_float32():
     img, l, _ = _scene(p=40, l=12, seed=11)
     d = prepare_inputs(img.float(), l.float(), dtype=torch.float64)

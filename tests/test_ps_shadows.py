@@ -51,6 +51,21 @@ def test_loop_keeps_the_callers_exclusions():
     assert not bool(seen[-1][0].any())
 
 
+def test_loop_keeps_the_first_solves_basis_brdfs():
+    img, l, n, _ = _scene(32)
+    mask = torch.ones(n.shape[:2], dtype=torch.bool)
+    B = torch.nn.functional.normalize(torch.randn(2, 20, dtype=torch.float64), dim=-1)
+    kws = []
+
+    def solve(images, lights, mask=None, valid=None, init=None, **kw):
+        kws.append(kw)
+        return SimpleNamespace(normals=n.clone(), mask=mask, info={"robust_scale": 0.25}, basis_brdfs=B)
+
+    shadow_loop(solve, img, l, mask, None, 1, 0.25, None, order=3)
+    assert "basis" not in kws[0]
+    assert kws[1]["basis"] is B and kws[1]["robust_scale"] == 0.25 and kws[1]["order"] == 3
+
+
 def test_cast_shadows_arguments_are_checked():
     img, l, _, _ = _scene(16)
     with pytest.raises(ValueError, match="cast_shadows"):

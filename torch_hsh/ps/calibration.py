@@ -14,6 +14,7 @@ calibration with the smallest Cauchy loss at a common scale.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 
@@ -32,7 +33,7 @@ from .observations import Observations
 from .refinement import refine_independent_chunk
 from .settings import Settings
 
-__all__ = ["Calibration", "calibrate"]
+__all__ = ["Calibration", "calibrate", "fixed_calibration"]
 
 # Iteration budgets of the shared model (fixed, not set per dataset; see
 # docs/photometric_stereo.md for how much the results depend on them).
@@ -207,3 +208,40 @@ def calibrate(obs: Observations, n_start: torch.Tensor, cfg: Settings) -> Calibr
     info["robust_scale"] = scale
     info["calibration_pixels"] = float(S.numel())
     return Calibration(basis=B, scale=scale, subset=S, subset_normals=n_cal)
+
+
+def fixed_calibration(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: torch.Tensor,
+                      scale: Optional[float]) -> Calibration:
+    """Stage 3 with the basis BRDFs given (``solve_hsh(basis=...)``): nothing is fitted.
+
+    ``basis (M, K)`` is used as it is (rows normalised). ``scale`` is the
+    robust residual scale at unit brightness; ``None`` estimates it as in the
+    first calibration round: on the seeded calibration subset, closed-form
+    mixing weights at the start normals with all valid observations, then
+    ``1.4826 x`` the median residual. The same floors as :func:`calibrate` apply.
+    """
+    d, w0, info = obs.data, obs.weights, obs.info
+    dt, dev = d.dtype, d.y.device
+    B = basis.to(device=dev, dtype=dt)
+    nb = B.norm(dim=-1, keepdim=True)
+    B = B / torch.where(nb > 0, nb, torch.ones_like(nb))
+    if scale is None:
+        with torch.no_grad():
+            usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
+            if usable.numel() == 0:
+                usable = torch.arange(d.y.shape[0], device=dev)
+            g = torch.Generator().manual_seed(int(cfg.seed))
+            S = usable[torch.randperm(usable.numel(), generator=g)[: cfg.calibration_pixels].to(dev)]
+            yT, wS = d.y[S].to(dt).transpose(1, 2), w0[S].to(dt)
+            Psi = MixedDesign(B, d.lights, cfg.order)(n_start[S])
+            Wt, _, _ = solve_weights(Psi, wS, yT, _ridge_diag(Psi, wS, 1e-4))
+            live = observation_residual(Psi, Wt, yT)[wS > 0]
+            scale = float(1.4826 * live.median()) if live.numel() else 1.0
+        info["robust_scale_estimated"] = 1.0
+    scale = max(float(scale), 3.0 * obs.sigma_y, 1e-4 * obs.typical, 1e-12)
+    info["materials"] = float(B.shape[0])
+    info["robust_scale"] = scale
+    info["calibration_pixels"] = 0.0
+    info["basis_given"] = 1.0
+    empty = torch.empty(0, dtype=torch.long, device=dev)
+    return Calibration(basis=B, scale=scale, subset=empty, subset_normals=n_start.new_empty(0, 3))

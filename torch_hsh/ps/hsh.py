@@ -42,13 +42,14 @@ Memory is bounded by ``O(chunk_size * L * K)`` in stages 4 and 5.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from typing import Dict, Optional, Sequence, Union
 
 import torch
 
 from ._common import scatter_pixels
-from .calibration import calibrate
+from .calibration import calibrate, fixed_calibration
 from .coefficients import fit_coefficients
 from .initialisation import initial_normals
 from .lambertian import _solve_flat
@@ -99,6 +100,8 @@ def solve_hsh(
     valid: Optional[torch.Tensor] = None,
     cast_shadows: int = 0,
     shadow_bias: float = 0.25,
+    basis: Optional[torch.Tensor] = None,
+    robust_scale: Optional[float] = None,
 ) -> HSHResult:
     r"""Photometric stereo with isotropic Helmholtz HSH BRDFs.
 
@@ -187,6 +190,15 @@ def solve_hsh(
             needs ``(L, H, W, C)`` images).
         shadow_bias: height in pixels an occluder must rise above a light ray
             to cast a shadow in that loop (depth-noise margin).
+        basis: optional ``(M, K)`` basis BRDFs of the shared model to use as
+            they are, for example ``basis_brdfs`` of an earlier result on the
+            same object (``K`` must match ``order``): the calibration (stage 3)
+            is skipped and the number of materials is ``M`` (an integer
+            ``materials`` is overridden; ``None`` and ``"auto"`` are errors).
+            The cast-shadow loop uses it to keep the first solve's basis.
+        robust_scale: with ``basis``: the robust residual scale in image units
+            (``info["robust_scale"]`` of that earlier result); ``None``
+            estimates it from the calibration subset at the start normals.
 
     Real captures: the solver runs at unit brightness (the images are divided
     by a power of two near their median), so the normals do not depend on the
@@ -223,6 +235,13 @@ def solve_hsh(
                   seed=seed, progress=progress)
         return shadow_loop(solve_hsh, images, lights, mask, valid, cast_shadows, shadow_bias, init, **kw)
     t_start = time.perf_counter()
+    if basis is not None:
+        materials = _check_basis(basis, order, materials)
+    elif robust_scale is not None:
+        raise ValueError("`robust_scale` is only used together with `basis`")
+    if robust_scale is not None and not (isinstance(robust_scale, (int, float)) and not isinstance(robust_scale, bool)
+                                         and math.isfinite(robust_scale) and robust_scale > 0):
+        raise ValueError(f"`robust_scale` must be a finite number > 0 (image units), got {robust_scale!r}")
     cfg = Settings.validated(
         order, materials, ridge, search_angles, search_azimuths, max_iter, robust, robust_iters, calibration_pixels,
         calibration_rounds, calibration_starts, nonneg, chunk_size, work_dtype, seed, progress,
@@ -239,7 +258,11 @@ def solve_hsh(
         obs.info.update(sel.info())
         cfg = dataclasses.replace(cfg, materials=sel.chosen)
         clock.lap("materials")
-    if cfg.materials is not None:
+    if basis is not None:
+        scale_u = None if robust_scale is None else float(robust_scale) / obs.scale  # the solve runs at unit brightness
+        cal = fixed_calibration(obs, n_start, cfg, basis, scale_u)  # 3, with the basis given
+        clock.lap("calibration")
+    elif cfg.materials is not None:
         cal = calibrate(obs, n_start, cfg)  # 3
         n_start = cal.start_normals(n_start)
         clock.lap("calibration")
@@ -252,6 +275,24 @@ def solve_hsh(
     clock.lap("result")
     res.info.update(clock.info())
     return res
+
+
+def _check_basis(basis, order, materials) -> int:
+    """Validate ``basis`` of :func:`solve_hsh`; returns the number of materials it implies."""
+    from .._checks import check_order
+    from ..basis import num_isotropic
+
+    K = num_isotropic(check_order(order))
+    if not isinstance(basis, torch.Tensor) or basis.dim() != 2 or basis.shape[1] != K or not 1 <= basis.shape[0] <= 8:
+        raise ValueError(f"`basis` must be a (M, {K}) tensor (M in 1..8, K for order {order}), "
+                         f"got {tuple(basis.shape) if isinstance(basis, torch.Tensor) else type(basis).__name__}")
+    if not basis.is_floating_point() or not bool(torch.isfinite(basis).all()) or bool((basis.norm(dim=-1) == 0).any()):
+        raise ValueError("`basis` must hold finite floating-point values and no zero row")
+    M = int(basis.shape[0])
+    if materials is None or isinstance(materials, str):
+        raise ValueError(f"`basis` fixes the shared model with M = {M} basis BRDFs; `materials` must not be "
+                         f"None or 'auto' with it, got {materials!r}")
+    return M
 
 
 class _StageClock:

@@ -9,7 +9,9 @@ loop (``solve_hsh(..., cast_shadows=R)``):
 3. march every light over that depth (:func:`torch_hsh.surface.light_visibility`,
    with a bias of ``shadow_bias`` pixels so that depth noise does not shadow
    pixels at grazing light; only the masked surface occludes);
-4. mark the occluded observations invalid and solve again from the current normals.
+4. mark the occluded observations invalid and solve again from the current normals,
+   with the first solve's basis BRDFs and robust scale kept (shared model:
+   only the per-pixel stages run again).
 
 At most ``R`` rounds; the loop stops early once a round changes the set of
 occluded observations by less than 0.1 % of the observations (the fixed point
@@ -69,7 +71,13 @@ def shadow_loop(solve: Callable, images: torch.Tensor, lights: torch.Tensor, mas
             break
         occluded = new
         v = ~occluded if valid is None else (valid.to(images.device).bool() & ~occluded)
-        res = solve(images, lights, mask=mask, valid=v, init=res.normals.to(images.dtype), **kwargs)
+        kw = dict(kwargs)
+        if getattr(res, "basis_brdfs", None) is not None:
+            # keep the first solve's basis BRDFs and robust scale: the visibility changes a few
+            # observations, not the object's materials, and a fresh calibration from other start
+            # normals would move the basis more than the shadows do (docs/photometric_stereo.md)
+            kw.update(basis=res.basis_brdfs, robust_scale=float(res.info["robust_scale"]))
+        res = solve(images, lights, mask=mask, valid=v, init=res.normals.to(images.dtype), **kw)
         done += 1
     res.info["shadow_rounds"] = float(done)
     res.info["shadowed_fraction"] = int(occluded.sum()) / n_obs
