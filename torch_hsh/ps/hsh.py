@@ -337,7 +337,7 @@ MIN_VALID_OBSERVATIONS = 4
 
 def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     d, info = obs.data, obs.info
-    n_valid = (obs.weights > 0).sum(-1)
+    n_valid = _count_positive(obs.weights)
     normals = ref.normals
     bad = (n_valid < MIN_VALID_OBSERVATIONS) | ~torch.isfinite(normals).all(-1) | (normals.norm(dim=-1) < 0.5)
     if bool(bad.any()):
@@ -389,6 +389,15 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
         mixing=None if ref.mixing is None else scatter_pixels(ref.mixing.transpose(1, 2) * s, d.mask),
         confidence=scatter_pixels(conf, d.mask),
     )
+
+
+def _count_positive(w: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
+    """``(w > 0).sum(-1)`` for ``w (P, L)``, in row chunks: a bool sum upcasts to int64, which for the
+    whole ``(P, L)`` tensor would be a temporary 8x the size of the flags (512 MB at 1024^2 x 96)."""
+    out = torch.empty(w.shape[0], dtype=torch.int64, device=w.device)
+    for i in range(0, w.shape[0], chunk):
+        out[i:i + chunk] = (w[i:i + chunk] > 0).sum(-1)
+    return out
 
 
 def _fallback_normals(obs, n_init, bad) -> torch.Tensor:
