@@ -425,7 +425,9 @@ def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, orde
       pixel's residual, the same weight the solver gives an observation.
     """
     U = (order + 1) * (order + 2) // 2
-    n_eff = weights.sum(-1, dtype=residual.dtype)  # no float64 copy of the (P, L) weights
+    # in row chunks: a float64 copy of the whole (P, L) weights would be the largest temporary of the solve
+    n_eff = torch.cat([weights[i:i + 65536].to(residual.dtype).sum(-1) for i in range(0, weights.shape[0], 65536)]) \
+        if weights.shape[0] else residual.new_zeros(0)
     cover = ((n_eff - 3.0) / max(U - 3, 1)).clamp(0.0, 1.0)
     sc = max(float(scale), 1e-30)
     fit = 1.0 / (1.0 + (residual / (c * sc)) ** 2)
