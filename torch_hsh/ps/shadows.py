@@ -21,6 +21,10 @@ so the dark threshold misses it and the robust weights see it only pixel by
 pixel; the geometry knows which lights a concave region cannot see.
 Limits: interreflections are not modelled; depth errors (perspective, wrong
 normals, disconnected parts with unknown offsets) feed back into the visibility.
+Measured (docs/photometric_stereo.md): on the bunny, cat and harvest the loop
+improves the mean error by 0.02-0.39 deg, but a second solve with the same
+basis and start *without* the visibility gains the same, so the gain is the
+second per-pixel pass, not the shadows; hence off by default.
 """
 from __future__ import annotations
 
