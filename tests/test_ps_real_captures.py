@@ -273,3 +273,18 @@ def test_result_save_and_load_round_trip(tmp_path):
     bad.write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
         ps.HSHResult.load(bad)
+
+
+def test_refinement_passes_restart_from_the_refined_normals():
+    img, l, n = _scene(p=200, l=24, seed=3)
+    one = ps.solve_hsh(img, l, refinement_passes=1, **FAST)
+    two = ps.solve_hsh(img, l, refinement_passes=2, **FAST)
+    assert two.info["refinement_passes"] == 2.0
+    assert torch.equal(one.basis_brdfs, two.basis_brdfs)  # the calibration is the same
+    # the second pass is the first pass restarted from its own normals with the same basis and scale
+    again = ps.solve_hsh(img, l, basis=one.basis_brdfs, robust_scale=one.info["robust_scale"], init=one.normals,
+                         refinement_passes=1, **FAST)
+    assert torch.allclose(two.normals, again.normals, atol=1e-6)
+    for bad in (0, 6, 1.5, True):
+        with pytest.raises(ValueError, match="refinement_passes"):
+            ps.solve_hsh(img, l, refinement_passes=bad)

@@ -102,6 +102,7 @@ def solve_hsh(
     shadow_bias: float = 0.25,
     basis: Optional[torch.Tensor] = None,
     robust_scale: Optional[float] = None,
+    refinement_passes: int = 2,
 ) -> HSHResult:
     r"""Photometric stereo with isotropic Helmholtz HSH BRDFs.
 
@@ -196,6 +197,13 @@ def solve_hsh(
             is skipped and the number of materials is ``M`` (an integer
             ``materials`` is overridden; ``None`` and ``"auto"`` are errors).
             The cast-shadow loop uses it to keep the first solve's basis.
+        refinement_passes: shared model: passes of the per-pixel refinement
+            (stage 4). Every pass after the first restarts from the previous
+            pass's normals, with fresh robust weights and a new cone search
+            around them (default 2; measured gains of 0.01–0.7 deg on every
+            scene of ``docs/photometric_stereo.md``, for about 30–60 % more time;
+            1 is the single pass of earlier versions). Ignored by the
+            independent model.
         robust_scale: with ``basis``: the robust residual scale in image units
             (``info["robust_scale"]`` of that earlier result); ``None``
             estimates it from the calibration subset at the start normals.
@@ -232,7 +240,7 @@ def solve_hsh(
                   calibration_pixels=calibration_pixels, calibration_rounds=calibration_rounds,
                   calibration_starts=calibration_starts, dark_fraction=dark_fraction, noise_sigma=noise_sigma,
                   saturation=saturation, nonneg=nonneg, chunk_size=chunk_size, dtype=dtype, work_dtype=work_dtype,
-                  seed=seed, progress=progress)
+                  seed=seed, progress=progress, refinement_passes=refinement_passes)
         return shadow_loop(solve_hsh, images, lights, mask, valid, cast_shadows, shadow_bias, init, **kw)
     t_start = time.perf_counter()
     if basis is not None:
@@ -245,6 +253,7 @@ def solve_hsh(
     cfg = Settings.validated(
         order, materials, ridge, search_angles, search_azimuths, max_iter, robust, robust_iters, calibration_pixels,
         calibration_rounds, calibration_starts, nonneg, chunk_size, work_dtype, seed, progress,
+        refinement_passes=refinement_passes,
     )
     clock = _StageClock(t_start)
     obs = observe(images, lights, intensities, mask, dtype, dark_fraction, noise_sigma, saturation, valid)  # 1
@@ -268,6 +277,13 @@ def solve_hsh(
         clock.lap("calibration")
     basis = None if cal is None else cal.basis
     ref = refine(obs, n_start, cfg, basis, None if cal is None else cal.scale)  # 4
+    if basis is not None:
+        iters = ref.iterations
+        for _ in range(1, cfg.refinement_passes):  # restart from the refined normals (fresh robust weights, cone search)
+            ref = refine(obs, ref.normals, cfg, basis, cal.scale if cal is not None else None)
+            iters += ref.iterations
+        ref.iterations = iters
+        obs.info["refinement_passes"] = float(cfg.refinement_passes)
     clock.lap("refinement")
     fit = fit_coefficients(obs, ref, cfg, basis)  # 5
     clock.lap("coefficients")

@@ -52,6 +52,7 @@ class Settings:
     seed: int
     progress: bool
     cauchy_c: float = CAUCHY_C
+    refinement_passes: int = 2
 
     @classmethod
     def validated(
@@ -72,6 +73,7 @@ class Settings:
         work_dtype,
         seed,
         progress,
+        refinement_passes=2,
     ) -> "Settings":
         order = check_order(order)
         materials = _check_materials(materials)
@@ -88,6 +90,8 @@ class Settings:
             raise ValueError(
                 f"`calibration_starts` must be a sequence of 'lambertian' / 'independent', got {calibration_starts!r}"
             )
+        if isinstance(refinement_passes, bool) or not isinstance(refinement_passes, int) or not 1 <= refinement_passes <= 5:
+            raise ValueError(f"`refinement_passes` must be an integer in [1, 5], got {refinement_passes!r}")
         if work_dtype is not None and work_dtype not in (torch.float32, torch.float64):
             raise ValueError(f"`work_dtype` must be torch.float32, torch.float64 or None, got {work_dtype!r}")
         if int(calibration_pixels) < 1 or int(calibration_rounds) < 0:
@@ -112,6 +116,7 @@ class Settings:
             work_dtype=work_dtype,
             seed=seed,
             progress=progress,
+            refinement_passes=int(refinement_passes),
         )
 
 
