@@ -161,7 +161,7 @@ def solve_hsh(
         search_azimuths: candidates per cone angle.
         max_iter: Levenberg–Marquardt iterations per stage (independent model,
             default 15) or IRLS-LM iterations of the per-pixel pass (shared
-            model, default 8; a pixel stops earlier once its normal is still).
+            model, default 16 per pass; a pixel stops earlier once its normal is still).
         robust: independent model only: run Cauchy IRLS stages (``robust_iters`` of them).
         robust_iters: independent model only: number of reweighting stages.
         calibration_pixels: shared model: size of the pixel subset used to fit ``B``.

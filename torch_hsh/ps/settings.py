@@ -82,7 +82,7 @@ class Settings:
         if int(chunk_size) < 1:
             raise ValueError(f"`chunk_size` must be >= 1, got {chunk_size}")
         if max_iter is None:
-            max_iter = 15 if materials is None else 8
+            max_iter = 15 if materials is None else 16
         if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 0:
             raise ValueError(f"`max_iter` must be an integer >= 0, got {max_iter!r}")
         bad = [s_ for s_ in calibration_starts if s_ not in ("lambertian", "independent")]
