@@ -202,7 +202,7 @@ def solve_hsh(
             pass's normals, with fresh robust weights and a new cone search
             around them (default 2; measured gains of 0.01–0.7 deg on every
             scene of ``docs/photometric_stereo.md``, for about 30–60 % more time;
-            1 is the single pass of earlier versions). Ignored by the
+            ``refinement_passes=1, max_iter=8`` is the single pass of earlier versions). Ignored by the
             independent model.
         robust_scale: with ``basis``: the robust residual scale in image units
             (``info["robust_scale"]`` of that earlier result); ``None``
