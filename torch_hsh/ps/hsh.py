@@ -280,7 +280,9 @@ def solve_hsh(
     if basis is not None:
         iters = ref.iterations
         for _ in range(1, cfg.refinement_passes):  # restart from the refined normals (fresh robust weights, cone search)
-            ref = refine(obs, ref.normals, cfg, basis, cal.scale if cal is not None else None)
+            n_prev = ref.normals
+            ref.weights = ref.weights.new_empty(0)  # release the (P, L) weights before the next pass allocates its own
+            ref = refine(obs, n_prev, cfg, basis, cal.scale if cal is not None else None)
             iters += ref.iterations
         ref.iterations = iters
         obs.info["refinement_passes"] = float(cfg.refinement_passes)
