@@ -1,4 +1,4 @@
-"""Small helpers shared by the photometric-stereo solvers: pixel scatter, angular error, tangent frames."""
+"""Small helpers shared by the photometric-stereo solvers: pixel scatter, row sums, angular error, tangent frames."""
 from __future__ import annotations
 
 from typing import Optional, Tuple
@@ -7,7 +7,24 @@ import torch
 
 from .._checks import check_dirs
 
-__all__ = ["scatter_pixels", "angular_error", "tangent_frame"]
+__all__ = ["scatter_pixels", "row_sum", "angular_error", "tangent_frame"]
+
+#: Rows per chunk of :func:`row_sum` (and of other per-pixel passes over ``(P, L)`` tensors).
+ROW_CHUNK = 65536
+
+
+def row_sum(x: torch.Tensor, dtype: Optional[torch.dtype] = None, chunk: int = ROW_CHUNK) -> torch.Tensor:
+    """``x.to(dtype).sum(-1)`` for ``x (P, L)``, in row chunks.
+
+    A bool sum upcasts to int64 and ``sum(dtype=...)`` copies its input, so on the
+    whole ``(P, L)`` tensor either would allocate a temporary several times the
+    size of ``x`` (512 MB at 1024^2 pixels x 96 lights); chunking bounds it.
+    """
+    if x.shape[0] == 0:
+        return x.new_zeros(0, dtype=torch.int64 if dtype is None and x.dtype == torch.bool else (dtype or x.dtype))
+    parts = [(x[i:i + chunk] if dtype is None else x[i:i + chunk].to(dtype)).sum(-1) for i in range(0, x.shape[0], chunk)]
+    return torch.cat(parts)
+
 
 
 def scatter_pixels(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -56,6 +56,22 @@ def _initial_mixing(albedo: torch.Tensor, M: int, seed: int) -> torch.Tensor:
     return torch.stack(cols, dim=-1)
 
 
+def _unit_rows(B: torch.Tensor) -> torch.Tensor:
+    """``B`` with every non-zero row scaled to unit norm."""
+    nb = B.norm(dim=-1, keepdim=True)
+    return B / torch.where(nb > 0, nb, torch.ones_like(nb))
+
+
+def _calibration_subset(w0: torch.Tensor, n_pixels: int, seed: int) -> torch.Tensor:
+    """Seeded random subset of at most ``n_pixels`` pixels with at least 3 valid observations (any pixel if none has)."""
+    dev = w0.device
+    usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
+    if usable.numel() == 0:
+        usable = torch.arange(w0.shape[0], device=dev)
+    g = torch.Generator().manual_seed(int(seed))
+    return usable[torch.randperm(usable.numel(), generator=g)[:n_pixels].to(dev)]
+
+
 def _fit_basis_brdfs(Phi, w, y, W, order, ridge_rel):
     """Shared basis BRDFs ``B (M, K)`` (unit rows) by weighted ridge LS over all pixels and channels."""
     M, K = W.shape[-1], Phi.shape[-1]
@@ -68,9 +84,7 @@ def _fit_basis_brdfs(Phi, w, y, W, order, ridge_rel):
     prof = ridge_profile(order, torch.float64, y.device).repeat(M)
     tr = A.diagonal().mean().clamp(min=1e-300)
     A = A + torch.diag(ridge_rel * tr * prof) + 1e-12 * tr * torch.eye(M * K, dtype=A.dtype, device=A.device)
-    B = torch.linalg.solve(A, r).reshape(M, K).to(y.dtype)
-    nb = B.norm(dim=-1, keepdim=True)
-    return B / torch.where(nb > 0, nb, torch.ones_like(nb))
+    return _unit_rows(torch.linalg.solve(A, r).reshape(M, K).to(y.dtype))
 
 
 def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge=_BASIS_RIDGE, weight_ridge=1e-4):
@@ -119,11 +133,7 @@ def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y,
     Returns ``B (M, K)``, the robust scale, the subset indices and their normals.
     """
     dt, dev = lights.dtype, y.device
-    usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
-    if usable.numel() == 0:
-        usable = torch.arange(y.shape[0], device=dev)
-    g = torch.Generator().manual_seed(int(seed))
-    S = usable[torch.randperm(usable.numel(), generator=g)[:n_pixels].to(dev)]
+    S = _calibration_subset(w0, n_pixels, seed)
     yS, w0S = y[S].to(dt), w0[S].to(dt)
     _, alb = _solve_flat(yS, lights, trimmed_weights(yS, 0.25, 0.10))
     W0 = _initial_mixing(alb, M, seed)
@@ -222,16 +232,10 @@ def fixed_calibration(obs: Observations, n_start: torch.Tensor, cfg: Settings, b
     """
     d, w0, info = obs.data, obs.weights, obs.info
     dt, dev = d.dtype, d.y.device
-    B = basis.to(device=dev, dtype=dt)
-    nb = B.norm(dim=-1, keepdim=True)
-    B = B / torch.where(nb > 0, nb, torch.ones_like(nb))
+    B = _unit_rows(basis.to(device=dev, dtype=dt))
     if scale is None:
         with torch.no_grad():
-            usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
-            if usable.numel() == 0:
-                usable = torch.arange(d.y.shape[0], device=dev)
-            g = torch.Generator().manual_seed(int(cfg.seed))
-            S = usable[torch.randperm(usable.numel(), generator=g)[: cfg.calibration_pixels].to(dev)]
+            S = _calibration_subset(w0, cfg.calibration_pixels, cfg.seed)
             yT, wS = d.y[S].to(dt).transpose(1, 2), w0[S].to(dt)
             Psi = MixedDesign(B, d.lights, cfg.order)(n_start[S])
             Wt, _, _ = solve_weights(Psi, wS, yT, _ridge_diag(Psi, wS, 1e-4))

@@ -48,7 +48,7 @@ from typing import Dict, Optional, Sequence, Union
 
 import torch
 
-from ._common import scatter_pixels
+from ._common import ROW_CHUNK, row_sum, scatter_pixels
 from .calibration import calibrate, fixed_calibration
 from .coefficients import fit_coefficients
 from .initialisation import initial_normals
@@ -245,11 +245,12 @@ def solve_hsh(
     t_start = time.perf_counter()
     if basis is not None:
         materials = _check_basis(basis, order, materials)
-    elif robust_scale is not None:
-        raise ValueError("`robust_scale` is only used together with `basis`")
-    if robust_scale is not None and not (isinstance(robust_scale, (int, float)) and not isinstance(robust_scale, bool)
-                                         and math.isfinite(robust_scale) and robust_scale > 0):
-        raise ValueError(f"`robust_scale` must be a finite number > 0 (image units), got {robust_scale!r}")
+    if robust_scale is not None:
+        if basis is None:
+            raise ValueError("`robust_scale` is only used together with `basis`")
+        if isinstance(robust_scale, bool) or not isinstance(robust_scale, (int, float)) \
+                or not math.isfinite(robust_scale) or robust_scale <= 0:
+            raise ValueError(f"`robust_scale` must be a finite number > 0 (image units), got {robust_scale!r}")
     cfg = Settings.validated(
         order, materials, ridge, search_angles, search_azimuths, max_iter, robust, robust_iters, calibration_pixels,
         calibration_rounds, calibration_starts, nonneg, chunk_size, work_dtype, seed, progress,
@@ -275,14 +276,14 @@ def solve_hsh(
         cal = calibrate(obs, n_start, cfg)  # 3
         n_start = cal.start_normals(n_start)
         clock.lap("calibration")
-    basis = None if cal is None else cal.basis
-    ref = refine(obs, n_start, cfg, basis, None if cal is None else cal.scale)  # 4
+    basis, scale = (None, None) if cal is None else (cal.basis, cal.scale)
+    ref = refine(obs, n_start, cfg, basis, scale)  # 4
     if basis is not None:
         iters = ref.iterations
         for _ in range(1, cfg.refinement_passes):  # restart from the refined normals (fresh robust weights, cone search)
             n_prev = ref.normals
             ref.weights = ref.weights.new_empty(0)  # release the (P, L) weights before the next pass allocates its own
-            ref = refine(obs, n_prev, cfg, basis, cal.scale if cal is not None else None)
+            ref = refine(obs, n_prev, cfg, basis, scale)
             iters += ref.iterations
         ref.iterations = iters
         obs.info["refinement_passes"] = float(cfg.refinement_passes)
@@ -345,9 +346,6 @@ def _peak_rss_mb() -> Optional[float]:
         return None
 
 
-#: Pixels per chunk when the result stage reads the albedo from the coefficient map.
-_ALBEDO_CHUNK = 65536
-
 #: A pixel needs this many valid observations for the HSH model; with fewer it
 #: keeps the robust Lambertian normal (and gets confidence 0).
 MIN_VALID_OBSERVATIONS = 4
@@ -355,7 +353,7 @@ MIN_VALID_OBSERVATIONS = 4
 
 def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     d, info = obs.data, obs.info
-    n_valid = _count_positive(obs.weights)
+    n_valid = row_sum(obs.weights > 0)
     normals = ref.normals
     bad = (n_valid < MIN_VALID_OBSERVATIONS) | ~torch.isfinite(normals).all(-1) | (normals.norm(dim=-1) < 0.5)
     if bool(bad.any()):
@@ -379,9 +377,9 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     coef_rows = fit.coefficients.mul_(s)
     pix = fit.pixels
     albedo = coef_rows.new_empty(normals.shape[0], coef_rows.shape[1])
-    for i in range(0, normals.shape[0], _ALBEDO_CHUNK):
-        rows = coef_rows[i:i + _ALBEDO_CHUNK] if pix is None else coef_rows[pix[i:i + _ALBEDO_CHUNK]]
-        albedo[i:i + _ALBEDO_CHUNK] = directional_albedo_view(rows, normals[i:i + _ALBEDO_CHUNK, 2])
+    for i in range(0, normals.shape[0], ROW_CHUNK):
+        rows = coef_rows[i:i + ROW_CHUNK] if pix is None else coef_rows[pix[i:i + ROW_CHUNK]]
+        albedo[i:i + ROW_CHUNK] = directional_albedo_view(rows, normals[i:i + ROW_CHUNK, 2])
     if pix is None:
         coef_map = scatter_pixels(coef_rows, d.mask)
     else:
@@ -409,15 +407,6 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     )
 
 
-def _count_positive(w: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
-    """``(w > 0).sum(-1)`` for ``w (P, L)``, in row chunks: a bool sum upcasts to int64, which for the
-    whole ``(P, L)`` tensor would be a temporary 8x the size of the flags (512 MB at 1024^2 x 96)."""
-    out = torch.empty(w.shape[0], dtype=torch.int64, device=w.device)
-    for i in range(0, w.shape[0], chunk):
-        out[i:i + chunk] = (w[i:i + chunk] > 0).sum(-1)
-    return out
-
-
 def _fallback_normals(obs, n_init, bad) -> torch.Tensor:
     """Normals of the pixels the HSH model cannot serve: Lambertian least squares on their valid observations
     where there are at least 3 of them (exactly determined for a Lambertian surface), else the stage-2 start."""
@@ -443,9 +432,7 @@ def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, orde
       pixel's residual, the same weight the solver gives an observation.
     """
     U = (order + 1) * (order + 2) // 2
-    # in row chunks: a float64 copy of the whole (P, L) weights would be the largest temporary of the solve
-    n_eff = torch.cat([weights[i:i + 65536].to(residual.dtype).sum(-1) for i in range(0, weights.shape[0], 65536)]) \
-        if weights.shape[0] else residual.new_zeros(0)
+    n_eff = row_sum(weights, residual.dtype)
     cover = ((n_eff - 3.0) / max(U - 3, 1)).clamp(0.0, 1.0)
     sc = max(float(scale), 1e-30)
     fit = 1.0 / (1.0 + (residual / (c * sc)) ** 2)

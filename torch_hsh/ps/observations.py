@@ -20,6 +20,7 @@ from typing import Dict, Optional, Tuple
 import torch
 
 from .._checks import check_dirs, check_tensor
+from ._common import row_sum
 
 __all__ = ["PSInput", "Observations", "prepare_inputs", "observation_weights", "observe", "robust_sigma"]
 
@@ -402,8 +403,7 @@ def observe(
     info["noise_background_pixels"] = float(d.background.shape[0] // max(L, 1))
     info["saturated_fraction"] = n_sat / max(P * L, 1)
     info["dark_fraction"] = n_dark / max(P * L, 1)
-    # counted chunk by chunk: a bool sum over (P, L) upcasts to an int64 temporary 8x the flags
-    info["invalid_fraction"] = sum(int((~d.valid[sl]).sum()) for sl in chunks) / max(P * L, 1)
+    info["invalid_fraction"] = int(row_sum(~d.valid).sum()) / max(P * L, 1)
     info["underdetermined_pixels"] = int((w0.sum(-1) < 3).sum())
     # global scale: a power of two near the median valid observation (exact division)
     # (sampled chunk by chunk: a full (P, L) channel mean would be the largest temporary of the solve)
