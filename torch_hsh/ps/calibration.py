@@ -13,6 +13,8 @@ calibration with the smallest Cauchy loss at a common scale.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from typing import Optional
 
@@ -84,7 +86,7 @@ def _fit_basis_brdfs(Phi, w, y, W, order, ridge_rel):
     prof = ridge_profile(order, torch.float64, y.device).repeat(M)
     tr = A.diagonal().mean().clamp(min=1e-300)
     A = A + torch.diag(ridge_rel * tr * prof) + 1e-12 * tr * torch.eye(M * K, dtype=A.dtype, device=A.device)
-    return _unit_rows(torch.linalg.solve(A, r).reshape(M, K).to(y.dtype))
+    return _unit_rows(torch.linalg.solve_ex(A, r)[0].reshape(M, K).to(y.dtype))  # SPD (ridge): no error check
 
 
 def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge=_BASIS_RIDGE, weight_ridge=1e-4):
@@ -111,8 +113,10 @@ def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge
             W = Wt.transpose(1, 2)
             res = observation_residual(Psi, Wt, yT)
             if rnd < _SCALE_ROUNDS:
-                live = res[w0 > 0]
-                scale = max(float(1.4826 * live.median()) if live.numel() else 1.0, 1e-12)
+                # median of the valid residuals without boolean indexing: one host sync, not two
+                med = torch.where(w0 > 0, res, torch.full_like(res, float("nan"))).flatten().nanmedian()
+                s_med = float(1.4826 * med)  # NaN when no observation is valid
+                scale = max(s_med, 1e-12) if math.isfinite(s_med) else 1.0
             w = cauchy_weights(res, w0, scale, c)
         n, _, _ = lm_normals(MixedDesign(B, lights, order), yT, w, rd, n, lm_iter, fd_step(y.dtype))
     return B, scale, n

@@ -156,21 +156,21 @@ class MixedDesign:
             for _ in range(2, P + 1):
                 gs.append(2.0 * a1 * gs[-1] - r1 * gs[-2])
         gs = [gs[0]] + [g * math.sqrt(2.0) for g in gs[1:]]
-        outs = []
-        for m in range(M):
-            acc = None
-            off = 0
-            for q in range(P + 1):
-                dq = self.deg[q]
-                Eq = E[:, m, off : off + dq]  # (p, dq)
-                off += dq
-                poly = Eq[:, dq - 1 : dq].expand(-1, t.shape[1])
-                for dd in range(dq - 2, -1, -1):
-                    poly = torch.addcmul(Eq[:, dd : dd + 1], poly, t)
-                acc = poly * gs[q] if acc is None else torch.addcmul(acc, poly, gs[q])
-            assert acc is not None  # the q loop runs at least once (q = 0)
-            outs.append(acc)
-        return torch.stack(outs, dim=1)
+        # Horner's rule for all M materials at once: (p, M, L) rows, one kernel per step
+        t = t.unsqueeze(1)  # (p, 1, L)
+        acc = None
+        off = 0
+        for q in range(P + 1):
+            dq = self.deg[q]
+            Eq = E[:, :, off : off + dq]  # (p, M, dq)
+            off += dq
+            poly = Eq[:, :, dq - 1 : dq].expand(-1, -1, t.shape[-1])
+            for dd in range(dq - 2, -1, -1):
+                poly = torch.addcmul(Eq[:, :, dd : dd + 1], poly, t)
+            g = gs[q].unsqueeze(1)
+            acc = poly * g if acc is None else torch.addcmul(acc, poly, g)
+        assert acc is not None  # the q loop runs at least once (q = 0)
+        return acc
 
 
 @lru_cache(maxsize=None)
@@ -212,11 +212,20 @@ def _design_factors(n: torch.Tensor, lights: torch.Tensor, order: int):
     sq2 = math.sqrt(2.0)
     Gq = torch.stack([G[0]] + [g * sq2 for g in G[1:]], dim=-1)  # (p, L, P+1)
     Ri = _polar_table_t(zi_c.reshape(-1), order).t().reshape(p, L, U)  # (p, L, U)
-    qidx = torch.tensor(qcol, device=dev)
+    qidx, src_t, coef_t, rows_t, cols_t = _factor_index_tensors(order, dt, dev)
     X = Ri * Gq.index_select(-1, qidx)
     Ro = _polar_table_t(zo_c, order).t()  # (p, U)
-    vals = Ro[:, src] * torch.tensor(coef, dtype=dt, device=dev)  # (p, 2K)
+    vals = Ro.index_select(1, src_t) * coef_t  # (p, 2K)
     T = torch.zeros(p, U, K, dtype=dt, device=dev)
-    T = T.index_put((torch.arange(p, device=dev).unsqueeze(-1), torch.tensor(rows, device=dev).unsqueeze(0).expand(p, -1),
-                     torch.tensor(cols_k, device=dev).unsqueeze(0).expand(p, -1)), vals, accumulate=True)
+    T = T.index_put((torch.arange(p, device=dev).unsqueeze(-1), rows_t.unsqueeze(0).expand(p, -1),
+                     cols_t.unsqueeze(0).expand(p, -1)), vals, accumulate=True)
     return X, T
+
+
+@lru_cache(maxsize=64)
+def _factor_index_tensors(order: int, dtype: torch.dtype, device: torch.device):
+    """The tables of :func:`_factor_tables` as tensors on ``device``, made once (no host-to-device copy per call)."""
+    U, qcol, rows, cols_k, src, coef = _factor_tables(order)
+    return (torch.tensor(qcol, device=device), torch.tensor(src, device=device),
+            torch.tensor(coef, dtype=dtype, device=device), torch.tensor(rows, device=device),
+            torch.tensor(cols_k, device=device))
