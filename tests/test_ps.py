@@ -256,3 +256,47 @@ def test_noise_estimate_ignores_object_pixels_left_outside_the_mask():
         d = prepare_inputs(img, l, mask=m)
         _, info = ps.observation_weights(d.y, d.y * d.intensities, d.background)
         assert 0.7 * sigma < info["noise_sigma"] < 1.4 * sigma, info["noise_sigma"]
+
+
+def test_chunk_size_is_resolved_per_device(monkeypatch):
+    from torch_hsh.ps.settings import CPU_CHUNK, DEVICE_CHUNK_RANGE, resolve_chunk
+
+    assert resolve_chunk(None, torch.device("cpu"), 96, 4) == CPU_CHUNK
+    assert resolve_chunk(123, torch.device("cpu"), 96, 4) == 123
+    # a GPU: the largest chunk whose temporaries fit a quarter of the free memory, clipped to the range
+    free = {"b": 16 * 2**30}
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (free["b"], 80 * 2**30))
+    cuda = torch.device("cuda")
+    c32 = resolve_chunk(None, cuda, 96, 4)
+    assert DEVICE_CHUNK_RANGE[0] < c32 < DEVICE_CHUNK_RANGE[1]
+    assert resolve_chunk(None, cuda, 96, 8) == c32 // 2 or abs(resolve_chunk(None, cuda, 96, 8) - c32 / 2) <= 1
+    free["b"] = 2**40
+    assert resolve_chunk(None, cuda, 96, 4) == DEVICE_CHUNK_RANGE[1]
+    free["b"] = 2**20
+    assert resolve_chunk(None, cuda, 96, 4) == DEVICE_CHUNK_RANGE[0]
+    # the solver reports the chunk it used; bad values name the argument
+    n, l = _scene(30, 12, 8)
+    img = render(n, l, Lambertian(torch.full((30, 3), 0.5, dtype=DT)))
+    r = ps.solve_hsh(img, l, max_iter=2, search_angles=(), refinement_passes=1)
+    assert r.info["chunk_size"] == CPU_CHUNK
+    for bad in (0, -3, 2.5, True, "big"):
+        with pytest.raises((ValueError, TypeError), match="chunk_size"):
+            ps.solve_hsh(img, l, chunk_size=bad)
+
+
+def test_safe_cholesky_jitters_only_the_failing_matrices():
+    from torch_hsh.ps.optim import safe_cholesky
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(5, 4, 4, generator=g, dtype=DT)
+    G = A @ A.transpose(1, 2) + 0.1 * torch.eye(4, dtype=DT)
+    good = safe_cholesky(G)
+    assert torch.equal(good, torch.linalg.cholesky(G))
+    bad = G.clone()
+    bad[2] = torch.ones(4, 4, dtype=DT)  # rank one: not numerically positive definite
+    bad[2, 3, 3] = 1.0 - 1e-12
+    L = safe_cholesky(bad)
+    keep = [0, 1, 3, 4]
+    assert torch.equal(L[keep], good[keep])  # the other pixels of the batch are untouched
+    assert torch.isfinite(L[2]).all()
+    assert torch.allclose(L[2] @ L[2].T, bad[2], atol=1e-6)

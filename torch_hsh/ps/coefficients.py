@@ -123,8 +123,9 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
         coefs = torch.empty(P, C, K, dtype=dt, device=dev)
     resid = torch.empty(P, dtype=dt, device=dev)
     # the safeguard's stacked designs (lights + 48 virtual lights, float64) are the largest
-    # temporaries of the solve: a smaller chunk than the refinement's bounds them
-    step = min(cfg.chunk_size, COEFFICIENT_CHUNK)
+    # temporaries of the solve: a smaller chunk than the refinement's bounds them (on the CPU
+    # a fixed one; on a GPU, where launches cost more than bytes, an eighth of the refinement's)
+    step = min(cfg.chunk_size, COEFFICIENT_CHUNK) if dev.type == "cpu" else max(COEFFICIENT_CHUNK, cfg.chunk_size // 8)
     with torch.no_grad():
         for s in range(0, P, step):
             sl = slice(s, min(P, s + step))

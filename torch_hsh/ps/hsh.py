@@ -57,7 +57,7 @@ from .observations import observation_weights, observe
 from .materials import select_materials
 from .refinement import refine
 from .result import HoldoutResult, HSHResult, directional_albedo_view, holdout_evaluation
-from .settings import AUTO, DEFAULT_MATERIALS, DEFAULT_ORDER, Settings
+from .settings import AUTO, DEFAULT_MATERIALS, DEFAULT_ORDER, Settings, resolve_chunk
 
 __all__ = [
     "HSHResult",
@@ -92,7 +92,7 @@ def solve_hsh(
     noise_sigma: Optional[float] = None,
     saturation: Optional[float] = None,
     nonneg: bool = True,
-    chunk_size: int = 8192,
+    chunk_size: Optional[int] = None,
     dtype: Optional[torch.dtype] = torch.float64,
     work_dtype: Optional[torch.dtype] = torch.float32,
     seed: int = 0,
@@ -174,6 +174,11 @@ def solve_hsh(
         dark_fraction, noise_sigma, saturation: thresholds, see :func:`observation_weights`.
         nonneg: apply the non-negativity safeguard to the final coefficients.
         chunk_size: pixels per batch of the per-pixel passes (bounded memory).
+            ``None`` (default): 8192 on the CPU; on a GPU, where fewer and
+            larger batches are faster, the largest that keeps a batch within a
+            quarter of the free device memory (8192 to 262144, see
+            :func:`~torch_hsh.ps.settings.resolve_chunk`). The results do not
+            depend on it; ``info["chunk_size"]`` reports the one used.
         dtype: dtype of the outputs and of the coefficient fits (default
             float64; ``None``: the images' dtype).
         work_dtype: shared model: dtype of the per-pixel normal iterations
@@ -256,8 +261,12 @@ def solve_hsh(
         calibration_rounds, calibration_starts, nonneg, chunk_size, work_dtype, seed, progress,
         refinement_passes=refinement_passes,
     )
-    clock = _StageClock(t_start)
+    clock = _StageClock(t_start, images.device if isinstance(images, torch.Tensor) else None)
     obs = observe(images, lights, intensities, mask, dtype, dark_fraction, noise_sigma, saturation, valid)  # 1
+    wdt = obs.data.dtype if cfg.work_dtype is None else cfg.work_dtype
+    cfg = dataclasses.replace(cfg, chunk_size=resolve_chunk(cfg.chunk_size, obs.data.y.device, obs.data.y.shape[1],
+                                                            torch.empty(0, dtype=wdt).element_size()))
+    obs.info["chunk_size"] = float(cfg.chunk_size)
     clock.lap("observations")
     n_init = initial_normals(obs, init)  # 2
     n_start = n_init
@@ -315,14 +324,22 @@ def _check_basis(basis, order, materials) -> int:
 
 
 class _StageClock:
-    """Wall time of each stage, reported in ``info`` as ``time_<stage>_s``."""
+    """Wall time of each stage, reported in ``info`` as ``time_<stage>_s``.
 
-    def __init__(self, t0: float):
+    On CUDA each lap waits for the device (one synchronisation per stage), so
+    a stage's time is its own and not that of the queued kernels before it.
+    """
+
+    def __init__(self, t0: float, device: Optional[torch.device] = None):
         self.t = t0
+        self.cuda = device is not None and device.type == "cuda"
+        self.device = device
         self.laps: Dict[str, float] = {}
         self.rss: Dict[str, Optional[float]] = {}
 
     def lap(self, name: str) -> None:
+        if self.cuda:
+            torch.cuda.synchronize(self.device)
         now = time.perf_counter()
         self.laps[name] = now - self.t
         self.t = now
