@@ -266,7 +266,7 @@ def solve_hsh(
     wdt = obs.data.dtype if cfg.work_dtype is None else cfg.work_dtype
     cfg = dataclasses.replace(cfg, chunk_size=resolve_chunk(cfg.chunk_size, obs.data.y.device, obs.data.y.shape[1],
                                                             torch.empty(0, dtype=wdt).element_size()))
-    obs.info["chunk_size"] = float(cfg.chunk_size)
+    obs.info["chunk_size"] = float(cfg.chunk)
     clock.lap("observations")
     n_init = initial_normals(obs, init)  # 2
     n_start = n_init

@@ -147,7 +147,7 @@ class Refinement:
 
 def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optional[torch.Tensor] = None,
            scale: Optional[float] = None) -> Refinement:
-    """Stage 4: refine every pixel's normal in chunks of ``cfg.chunk_size`` pixels.
+    """Stage 4: refine every pixel's normal in chunks of ``cfg.chunk`` pixels.
 
     ``basis (M, K)`` and the robust ``scale`` come from the calibration (shared
     model); with ``basis=None`` the independent model runs.
@@ -163,7 +163,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
     wfin = torch.empty(P, L, dtype=d.y.dtype, device=dev)  # storage dtype: weights need no float64
     mixing = torch.empty(P, basis.shape[0], C, dtype=dt, device=dev) if basis is not None else None
     ridge_diag = None if shared else torch.empty(P, profile.shape[0], dtype=dt, device=dev)
-    starts = list(range(0, P, cfg.chunk_size))
+    starts = list(range(0, P, cfg.chunk))
     it = starts
     if cfg.progress:
         from tqdm.auto import tqdm
@@ -173,7 +173,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
     moved = 0
     with torch.no_grad():
         for s in it:
-            sl = slice(s, min(P, s + cfg.chunk_size))
+            sl = slice(s, min(P, s + cfg.chunk))
             if shared:
                 n, w, Wt, k = refine_shared_chunk(
                     basis, d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.max_iter,

@@ -54,6 +54,13 @@ class Settings:
     cauchy_c: float = CAUCHY_C
     refinement_passes: int = 2
 
+    @property
+    def chunk(self) -> int:
+        """Pixels per chunk; ``solve_hsh`` resolves ``chunk_size=None`` per device (:func:`resolve_chunk`) first."""
+        if self.chunk_size is None:
+            raise RuntimeError("chunk_size=None must be resolved with resolve_chunk() before the per-pixel stages")
+        return self.chunk_size
+
     @classmethod
     def validated(
         cls,
