@@ -4,6 +4,7 @@ Usage:
     OMP_NUM_THREADS=2 python benchmarks/bench_surface.py                     # 256^2, 512^2, 1024^2
     OMP_NUM_THREADS=2 python benchmarks/bench_surface.py --sizes 256 512 --bilateral-max 512
     OMP_NUM_THREADS=2 python benchmarks/bench_surface.py --data ../shared/data/diligent_cat
+    python benchmarks/bench_surface.py --device cuda --sizes 1024 2048 --bilateral-max 1024   # the torch solver on a GPU
 
 Synthetic problem: an analytic height field (sines plus a tilt, relief ~ size/4 px) with its
 exact normals, on a disc of diameter 0.98 * size with two holes. For every size it times
@@ -152,38 +153,49 @@ def main():
     ap.add_argument("--reference-max", type=int, default=512)
     ap.add_argument("--perspective", action="store_true", help="cost of the orthographic assumption")
     ap.add_argument("--data", default=None, help="DiLiGenT-layout folder (e.g. ../shared/data/diligent_cat)")
+    ap.add_argument("--device", default="cpu",
+                    help="cpu, or a GPU (cuda): then only the torch solver runs, timed with device synchronisation")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     from torch_hsh.surface import integrate_normals
 
-    print(f"torch {torch.__version__}, {args.threads} threads, tol {args.tol:g}")
+    print(f"torch {torch.__version__}, {args.threads} threads, device {args.device}, tol {args.tol:g}")
     print(f"{'size':>6s} {'method':22s} {'unknowns':>9s} {'iters':>7s} {'resid':>8s} {'rms px':>8s} {'wall s':>7s} "
           f"{'cpu s':>7s} {'ref/wall':>8s} {'ref/cpu':>8s}")
+    dev = torch.device(args.device)
+    gpu = dev.type != "cpu"
     for size in args.sizes:
         z_true, n, m = problem(size)
+        if gpu:
+            n, m = n.to(dev), m.to(dev)
+            integrate_normals(n, m, solver="torch", tol=args.tol)  # warm-up (context, FFT plans)
         rows = []
         ref_t = ref_c = None
-        if size <= args.reference_max:
+        if size <= args.reference_max and not gpu:
             (zr, its, res), ref_t = timed(lambda n=n, m=m: plain_cg(n, m, args.tol), 1)
             ref_c = timed.cpu
             rows.append(("plain CG (ref)", its, res, rms_error(zr, z_true, m), ref_t, timed.cpu))
-        for method, solver in (("poisson", "scipy"), ("poisson", "torch"), ("bilateral", "scipy")):
+        combos = (("poisson", "torch"), ("bilateral", "torch")) if gpu else \
+            (("poisson", "scipy"), ("poisson", "torch"), ("bilateral", "scipy"))
+        for method, solver in combos:
             if method == "bilateral" and size > args.bilateral_max:
                 continue
             reps = 1 if method == "bilateral" else args.repeats
-            (z, info), t = timed(
-                lambda n=n, m=m, method=method, solver=solver: integrate_normals(
-                    n, m, method, solver=solver, tol=args.tol, return_info=True
-                ),
-                reps,
-            )
+
+            def run(n=n, m=m, method=method, solver=solver):
+                out = integrate_normals(n, m, method, solver=solver, tol=args.tol, return_info=True)
+                if gpu:
+                    torch.cuda.synchronize(dev)
+                return out
+
+            (z, info), t = timed(run, reps)
             its = sum(info["iterations"])
             name = f"{method}/{solver}" + (f" ({info['outer_iterations']} rw)" if method == "bilateral" else "")
-            rows.append((name, its, info["residual"], rms_error(z, z_true, m), t, timed.cpu))
+            rows.append((name, its, info["residual"], rms_error(z.cpu(), z_true, m.cpu()), t, timed.cpu))
         for name, its, res, err, t, cpu in rows:
             ratio = f"{ref_t / t:8.1f} {ref_c / max(cpu, 1e-9):8.1f}" if ref_t else f"{'-':>8s} {'-':>8s}"
             print(f"{size:>4d}^2 {name:22s} {int(m.sum()):9d} {its:7d} {res:8.1e} {err:8.4f} {t:7.2f} {cpu:7.2f} {ratio}")
-        if size == 1024:
+        if size == 1024 and not gpu:
             t, cpu = [(r[4], r[5]) for r in rows if r[0] == "poisson/scipy"][0]
             print(f"target: Poisson at 1024^2 under 10 s on {args.threads} threads at tol {args.tol:g}: "
                   f"wall {t:.2f} s ({'met' if t < 10 else 'NOT met'}), CPU {cpu:.2f} s "
