@@ -72,7 +72,7 @@ def _mean_err(ps, normals, gt, mask=None):
 
 
 def _timed(ps, dev, images, lights, repeat, mask=None, intensities=None, **kw):
-    times, res = [], None
+    times, res, laps = [], None, []
     _peak_reset(dev)
     for _ in range(max(1, repeat)):
         _sync(dev)
@@ -80,7 +80,8 @@ def _timed(ps, dev, images, lights, repeat, mask=None, intensities=None, **kw):
         res = ps.solve_hsh(images, lights, intensities, mask, **kw)
         _sync(dev)
         times.append(time.perf_counter() - t)
-    stages = {s: res.info[f"time_{s}_s"] for s in STAGES if f"time_{s}_s" in res.info}
+        laps.append(res.info)
+    stages = {s: statistics.median(i[f"time_{s}_s"] for i in laps) for s in STAGES if f"time_{s}_s" in res.info}
     return res, {"wall_s": statistics.median(times), "walls_s": times, "stages_s": stages, "peak_mb": _peak_mb(dev)}
 
 

@@ -163,12 +163,15 @@ def main():
     print(f"{'size':>6s} {'method':22s} {'unknowns':>9s} {'iters':>7s} {'resid':>8s} {'rms px':>8s} {'wall s':>7s} "
           f"{'cpu s':>7s} {'ref/wall':>8s} {'ref/cpu':>8s}")
     dev = torch.device(args.device)
-    gpu = dev.type != "cpu"
+    if dev.type not in ("cpu", "cuda"):
+        ap.error(f"--device must be cpu or cuda, got {args.device!r}")
+    gpu = dev.type == "cuda"
     for size in args.sizes:
         z_true, n, m = problem(size)
         if gpu:
             n, m = n.to(dev), m.to(dev)
-            integrate_normals(n, m, solver="torch", tol=args.tol)  # warm-up (context, FFT plans)
+            for method in ("poisson", "bilateral"):  # warm-up (context, FFT plans, kernels)
+                integrate_normals(n, m, method, solver="torch", tol=args.tol, iterations=2)
         rows = []
         ref_t = ref_c = None
         if size <= args.reference_max and not gpu:

@@ -261,19 +261,28 @@ def test_noise_estimate_ignores_object_pixels_left_outside_the_mask():
 def test_chunk_size_is_resolved_per_device(monkeypatch):
     from torch_hsh.ps.settings import CPU_CHUNK, DEVICE_CHUNK_RANGE, resolve_chunk
 
-    assert resolve_chunk(None, torch.device("cpu"), 96, 4) == CPU_CHUNK
-    assert resolve_chunk(123, torch.device("cpu"), 96, 4) == 123
+    cpu = torch.device("cpu")
+    assert resolve_chunk(None, cpu, 96, 20, False, 4, 8) == CPU_CHUNK
+    assert resolve_chunk(None, cpu, 96, 84, True, 8, 8) == CPU_CHUNK
+    assert resolve_chunk(123, cpu, 96, 20, False, 4, 8) == 123
     # a GPU: the largest chunk whose temporaries fit a quarter of the free memory, clipped to the range
     free = {"b": 16 * 2**30}
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (free["b"], 80 * 2**30))
     cuda = torch.device("cuda")
-    c32 = resolve_chunk(None, cuda, 96, 4)
-    assert DEVICE_CHUNK_RANGE[0] < c32 < DEVICE_CHUNK_RANGE[1]
-    assert resolve_chunk(None, cuda, 96, 8) == c32 // 2 or abs(resolve_chunk(None, cuda, 96, 8) - c32 / 2) <= 1
+    shared32 = resolve_chunk(None, cuda, 96, 20, False, 4, 8)
+    assert DEVICE_CHUNK_RANGE[0] < shared32 < DEVICE_CHUNK_RANGE[1]
+    # a quarter of 16 GiB over the larger of the refinement's and the coefficient stage's bytes per pixel
+    assert shared32 == 4 * 2**30 // max(384 * 96, 14 * 20 * (96 + 48) * 8 // 8)
+    assert resolve_chunk(None, cuda, 96, 4, False, 8, 8) == 4 * 2**30 // (384 * 96 * 2)  # float64 work, order 2
+    # the independent model holds (lights, K) designs per pixel: far smaller chunks, smaller still at higher order
+    ind3 = resolve_chunk(None, cuda, 96, 20, True, 8, 8)
+    ind6 = resolve_chunk(None, cuda, 96, 84, True, 8, 8)
+    assert DEVICE_CHUNK_RANGE[0] <= ind6 < ind3 < shared32
+    assert resolve_chunk(None, cuda, 96, 84, False, 4, 8) < shared32  # order 6: the coefficient stage dominates
     free["b"] = 2**40
-    assert resolve_chunk(None, cuda, 96, 4) == DEVICE_CHUNK_RANGE[1]
+    assert resolve_chunk(None, cuda, 96, 20, False, 4, 8) == DEVICE_CHUNK_RANGE[1]
     free["b"] = 2**20
-    assert resolve_chunk(None, cuda, 96, 4) == DEVICE_CHUNK_RANGE[0]
+    assert resolve_chunk(None, cuda, 96, 20, False, 4, 8) == DEVICE_CHUNK_RANGE[0]
     # the solver reports the chunk it used; bad values name the argument
     n, l = _scene(30, 12, 8)
     img = render(n, l, Lambertian(torch.full((30, 3), 0.5, dtype=DT)))

@@ -243,8 +243,10 @@ def fixed_calibration(obs: Observations, n_start: torch.Tensor, cfg: Settings, b
             yT, wS = d.y[S].to(dt).transpose(1, 2), w0[S].to(dt)
             Psi = MixedDesign(B, d.lights, cfg.order)(n_start[S])
             Wt, _, _ = solve_weights(Psi, wS, yT, _ridge_diag(Psi, wS, 1e-4))
-            live = observation_residual(Psi, Wt, yT)[wS > 0]
-            scale = float(1.4826 * live.median()) if live.numel() else 1.0
+            res = observation_residual(Psi, Wt, yT)
+            med = torch.where(wS > 0, res, torch.full_like(res, float("nan"))).flatten().nanmedian()
+            s_med = float(1.4826 * med)  # NaN when no observation is valid
+            scale = s_med if math.isfinite(s_med) else 1.0
         info["robust_scale_estimated"] = 1.0
     scale = max(float(scale), 3.0 * obs.sigma_y, 1e-4 * obs.typical, 1e-12)
     info["materials"] = float(B.shape[0])

@@ -125,7 +125,7 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
     # the safeguard's stacked designs (lights + 48 virtual lights, float64) are the largest
     # temporaries of the solve: a smaller chunk than the refinement's bounds them (on the CPU
     # a fixed one; on a GPU, where launches cost more than bytes, an eighth of the refinement's)
-    step = min(cfg.chunk, COEFFICIENT_CHUNK) if dev.type == "cpu" else max(COEFFICIENT_CHUNK, cfg.chunk // 8)
+    step = min(cfg.chunk, COEFFICIENT_CHUNK if dev.type == "cpu" else max(COEFFICIENT_CHUNK, cfg.chunk // 8))
     with torch.no_grad():
         for s in range(0, P, step):
             sl = slice(s, min(P, s + step))

@@ -48,6 +48,7 @@ from typing import Dict, Optional, Sequence, Union
 
 import torch
 
+from ..basis import num_isotropic
 from ._common import ROW_CHUNK, row_sum, scatter_pixels
 from .calibration import calibrate, fixed_calibration
 from .coefficients import fit_coefficients
@@ -261,11 +262,14 @@ def solve_hsh(
         calibration_rounds, calibration_starts, nonneg, chunk_size, work_dtype, seed, progress,
         refinement_passes=refinement_passes,
     )
-    clock = _StageClock(t_start, images.device if isinstance(images, torch.Tensor) else None)
+    clock = _StageClock(t_start, images.device if isinstance(images, torch.Tensor) else None)  # set again after stage 1
     obs = observe(images, lights, intensities, mask, dtype, dark_fraction, noise_sigma, saturation, valid)  # 1
     wdt = obs.data.dtype if cfg.work_dtype is None else cfg.work_dtype
-    cfg = dataclasses.replace(cfg, chunk_size=resolve_chunk(cfg.chunk_size, obs.data.y.device, obs.data.y.shape[1],
-                                                            torch.empty(0, dtype=wdt).element_size()))
+    chunk = resolve_chunk(cfg.chunk_size, obs.data.y.device, obs.data.y.shape[1], num_isotropic(cfg.order),
+                          cfg.materials is None and basis is None, torch.empty(0, dtype=wdt).element_size(),
+                          torch.empty(0, dtype=obs.data.dtype).element_size())
+    cfg = dataclasses.replace(cfg, chunk_size=chunk)
+    clock.cuda, clock.device = obs.data.y.device.type == "cuda", obs.data.y.device
     obs.info["chunk_size"] = float(cfg.chunk)
     clock.lap("observations")
     n_init = initial_normals(obs, init)  # 2

@@ -111,7 +111,7 @@ def refine_shared_chunk(B, y, w0, n, lights, order, scale, c, iters, irls, searc
         Psi[idx] = P_new
         w[idx] = wi
         if it >= 2:
-            active[idx] = step >= step_tol  # every idx was active: no boolean indexing (no host sync)
+            active[idx] = ~(step < step_tol)  # every idx was active: no boolean indexing (no host sync); NaN stays active
     w, _ = irls_weights(Psi, yd, w, w0d, scale, c, irls)
     rd = _ridge_diag(Psi, w, 1e-4)
     Wt, _, _ = solve_weights(Psi, w, yd, rd)

@@ -150,24 +150,44 @@ def _check_materials(materials):
 CPU_CHUNK = 8192
 #: Bounds of the chunk chosen on other devices from their free memory.
 DEVICE_CHUNK_RANGE = (8192, 262144)
-#: Bytes per pixel and light of the per-pixel refinement in a 4-byte work dtype, with headroom
-#: (measured on CUDA: about 290 at 96 lights, float32).
-_BYTES_PER_PIXEL_LIGHT = 384
+#: Bytes per pixel and light of the shared model's per-pixel refinement in a 4-byte work dtype,
+#: with headroom (measured on an H200: about 290 at 96 lights, float32, order 3).
+_SHARED_BYTES_PER_PIXEL_LIGHT = 384
+#: Numbers per pixel, light (real or virtual) and basis function held by the K-sized designs of the
+#: independent model and of the final coefficients, with headroom (measured on the CPU: 10-12 at
+#: orders 3 and 6, 96 lights, float64).
+_NUMBERS_PER_PIXEL_LIGHT_K = 14
+#: Virtual lights of the non-negativity safeguard (:func:`~torch_hsh.ps.coefficients.final_coefficients`).
+_VIRTUAL_LIGHTS = 48
 
 
-def resolve_chunk(chunk_size: Optional[int], device: torch.device, n_lights: int, work_itemsize: int) -> int:
+def resolve_chunk(chunk_size: Optional[int], device: torch.device, n_lights: int, n_basis: int, independent: bool,
+                  work_itemsize: int, itemsize: int) -> int:
     """Pixels per chunk: ``chunk_size`` if given, else :data:`CPU_CHUNK` on the CPU, else sized from free memory.
 
     On a GPU the solver is bound by kernel launches, not arithmetic, so fewer,
     larger chunks are faster: the chunk is the largest that keeps one chunk's
     temporaries within a quarter of the device's free memory, clipped to
     :data:`DEVICE_CHUNK_RANGE`. Results do not depend on the chunk.
+
+    Per pixel, the estimate counts ``n_lights`` real and 48 virtual lights:
+
+    * independent model (``independent=True``): the ``(lights, K)`` designs of
+      ``K = n_basis`` basis functions in the output dtype (``itemsize`` bytes);
+    * shared model: the larger of the refinement's ``(M, lights)`` arrays in
+      the work dtype (``work_itemsize``) and the final coefficients' ``(lights,
+      K)`` designs, which run in an eighth of the chunk.
     """
     if chunk_size is not None:
         return int(chunk_size)
     if device.type != "cuda":
         return CPU_CHUNK
     free, _ = torch.cuda.mem_get_info(device)
-    per_pixel = _BYTES_PER_PIXEL_LIGHT * max(1, n_lights) * work_itemsize // 4
+    L = max(1, int(n_lights))
+    k_term = _NUMBERS_PER_PIXEL_LIGHT_K * max(1, int(n_basis)) * (L + _VIRTUAL_LIGHTS) * itemsize
+    if independent:
+        per_pixel = k_term
+    else:
+        per_pixel = max(_SHARED_BYTES_PER_PIXEL_LIGHT * L * work_itemsize // 4, k_term // 8)
     lo, hi = DEVICE_CHUNK_RANGE
     return int(min(hi, max(lo, free // 4 // per_pixel)))
