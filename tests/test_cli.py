@@ -43,7 +43,7 @@ def fake_solver(monkeypatch):
     state = {"confidence": None, "fail_in_pictures": None}
 
     def solve(images, lights, intensities=None, mask=None, order=3, materials=None, progress=False, **kw):
-        calls.append(dict(order=order, materials=materials, lights=int(lights.shape[0])))
+        calls.append(dict(order=order, materials=materials, lights=int(lights.shape[0]), **kw))
         lam = ps.lambertian_ls(images, lights, intensities, mask)
         K = torch_hsh.num_isotropic(order)
         coeffs = torch.zeros(*mask.shape, 3, K, dtype=images.dtype)
@@ -381,3 +381,11 @@ def test_default_scene_is_the_demo_scene(tmp_path, fake_solver):
     m = _strict_json(out / "metrics.json")
     assert "bumpy" in m["data"].lower() or "demo" in m["data"].lower()
     assert m["lights"] == 12
+
+
+def test_flattened_starts_flag_reaches_the_solver(tmp_path, capsys, fake_solver):
+    code, _ = _run(["ps", "--out", str(tmp_path / "a"), *FAST], capsys)
+    assert code == 0 and "calibration_starts" not in fake_solver.calls[-1]
+    code, _ = _run(["ps", "--out", str(tmp_path / "b"), *FAST, "--flattened-starts"], capsys)
+    assert code == 0
+    assert fake_solver.calls[-1]["calibration_starts"] == ("lambertian", "independent", "flattened")

@@ -309,3 +309,21 @@ def test_safe_cholesky_jitters_only_the_failing_matrices():
     assert torch.equal(L[keep], good[keep])  # the other pixels of the batch are untouched
     assert torch.isfinite(L[2]).all()
     assert torch.allclose(L[2] @ L[2].T, bad[2], atol=1e-6)
+
+
+def test_flattened_calibration_starts_add_two_candidates():
+    from torch_hsh.ps.calibration import FLATTEN_FACTORS
+
+    n, l = _scene(40, 16, 11)
+    img = render(n, l, BlinnPhong(torch.full((40, 3), 0.5, dtype=DT), torch.full((40, 1), 0.3, dtype=DT),
+                                  torch.full((40, 1), 20.0, dtype=DT)), read_std=1e-3, seed=0)
+    kw = dict(calibration_rounds=2, max_iter=2, refinement_passes=1, search_angles=())
+    base = ps.solve_hsh(img, l, **kw)
+    flat = ps.solve_hsh(img, l, calibration_starts=("lambertian", "independent", "flattened"), **kw)
+    lb, lf = base.info["calibration_losses"], flat.info["calibration_losses"]
+    assert len(lb) == 2 and len(lf) == 2 + len(FLATTEN_FACTORS)
+    assert flat.info["calibration_start"] == min(range(len(lf)), key=lambda i: lf[i])
+    only = ps.solve_hsh(img, l, calibration_starts=("lambertian", "flattened"), **kw)
+    assert len(only.info["calibration_losses"]) == 1 + len(FLATTEN_FACTORS)
+    with pytest.raises(ValueError, match="calibration_starts.*flattened"):
+        ps.solve_hsh(img, l, calibration_starts=("lambertian", "steeper"))

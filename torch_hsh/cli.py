@@ -479,6 +479,9 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
                    help="replace an existing --out folder that is not a torch-hsh result (its files are deleted)")
     p.add_argument("--cast-shadows", type=_int_in(0, 5), default=0,
                    help="rounds of the cast-shadow loop of the HSH solver (default 0: off; see torch_hsh.ps.shadows)")
+    p.add_argument("--flattened-starts", action="store_true",
+                   help="two more calibration starts with flattened Lambertian normals (opt-in, about +25%% time; "
+                        "see docs/photometric_stereo.md)")
     p.add_argument("--depth", action="store_true",
                    help="integrate the normals: write depth.npy and depth.exr (pixel units, orthographic) and surface.png")
     p.add_argument("--mesh", nargs="?", const="ply", choices=("ply", "obj"), default=None,
@@ -572,7 +575,9 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         rob = ps.robust_lambertian(imgs, lights, inten, mask)
         rows.append(("robust Lambertian (trimmed)", *_errors(rob.normals, gt, mask), time.perf_counter() - t))
         t = time.perf_counter()
-        kw = {"cast_shadows": args.cast_shadows} if args.cast_shadows else {}
+        kw: Dict[str, Any] = {"cast_shadows": args.cast_shadows} if args.cast_shadows else {}
+        if args.flattened_starts:
+            kw["calibration_starts"] = ("lambertian", "independent", "flattened")
         res = ps.solve_hsh(imgs, lights, inten, mask, order=order, materials=materials, progress=not args.quiet, **kw)
         t_hsh = time.perf_counter() - t
         rows.append((f"HSH (order {order})", *_errors(res.normals, gt, mask), t_hsh))

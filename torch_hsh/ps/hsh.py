@@ -168,10 +168,15 @@ def solve_hsh(
         calibration_pixels: shared model: size of the pixel subset used to fit ``B``.
         calibration_rounds: shared model: alternation rounds on that subset.
         calibration_starts: shared model: starts of the calibration, any of
-            ``"lambertian"`` (robust Lambertian normals, always used) and
-            ``"independent"`` (normals of the independent model on the subset);
-            the calibration with the smallest Cauchy loss of the subset
-            residuals at a common scale is kept.
+            ``"lambertian"`` (robust Lambertian normals, always used),
+            ``"independent"`` (normals of the independent model on the subset)
+            and ``"flattened"`` (opt-in: two more starts, the Lambertian normals
+            with their slopes scaled by 0.6 and 0.8, against the steepening
+            that specular reflection gives a Lambertian fit; about +25 % time,
+            see ``docs/photometric_stereo.md`` for when it helps); the
+            calibration with the smallest Cauchy loss of the subset residuals
+            at a common scale is kept (``info["calibration_start"]``: its
+            index in that order).
         dark_fraction, noise_sigma, saturation: thresholds, see :func:`observation_weights`.
         nonneg: apply the non-negativity safeguard to the final coefficients.
         chunk_size: pixels per batch of the per-pixel passes (bounded memory).

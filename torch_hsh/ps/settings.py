@@ -93,10 +93,11 @@ class Settings:
             max_iter = 15 if materials is None else 16
         if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 0:
             raise ValueError(f"`max_iter` must be an integer >= 0, got {max_iter!r}")
-        bad = [s_ for s_ in calibration_starts if s_ not in ("lambertian", "independent")]
+        bad = [s_ for s_ in calibration_starts if s_ not in CALIBRATION_STARTS]
         if isinstance(calibration_starts, str) or bad:
             raise ValueError(
-                f"`calibration_starts` must be a sequence of 'lambertian' / 'independent', got {calibration_starts!r}"
+                f"`calibration_starts` must be a sequence of 'lambertian' / 'independent' / 'flattened', "
+                f"got {calibration_starts!r}"
             )
         if isinstance(refinement_passes, bool) or not isinstance(refinement_passes, int) or not 1 <= refinement_passes <= 5:
             raise ValueError(f"`refinement_passes` must be an integer in [1, 5], got {refinement_passes!r}")
@@ -145,6 +146,9 @@ def _check_materials(materials):
         )
     return int(materials)
 
+
+#: Accepted names in ``calibration_starts`` (see :func:`~torch_hsh.ps.solve_hsh`).
+CALIBRATION_STARTS = ("lambertian", "independent", "flattened")
 
 #: Pixels per chunk of the per-pixel passes on the CPU (``chunk_size=None``).
 CPU_CHUNK = 8192
