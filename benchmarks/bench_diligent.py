@@ -5,6 +5,7 @@ Usage:
     python benchmarks/bench_diligent.py /path/to/DiLiGenT/pmsData --drop-first 20 --seeds 0 1 2 3 4
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat --baseline   # + the 6d85856 solver
     python benchmarks/bench_diligent.py ../shared/data/diligent_harvest --cast-shadows 1  # + the shadow loop
+    python benchmarks/bench_diligent.py ../shared/data/diligent_cat --flattened-starts     # + the opt-in starts
 
 Arguments are object folders (``light_directions.txt``, images, ``mask.png``,
 ``Normal_gt.mat``) or the root of a DiLiGenT download (every ``*PNG`` folder
@@ -77,6 +78,8 @@ def main(argv=None):
     ap.add_argument("--baseline", action="store_true", help="also run the baseline solver (6d85856 + linspace fix)")
     ap.add_argument("--baseline-seeds", type=int, nargs="+", default=None,
                     help="seeds of the baseline runs (default: the same as --seeds)")
+    ap.add_argument("--flattened-starts", action="store_true",
+                    help="add a row: the HSH solver with the opt-in flattened calibration starts, same seeds")
     ap.add_argument("--cast-shadows", type=int, default=0,
                     help="R > 0: also run the solver with R rounds of the cast-shadow loop")
     ap.add_argument("--json", default=None, help="write every record to this JSON file")
@@ -95,6 +98,8 @@ def main(argv=None):
     trees = [("HSH", ROOT, [])]
     if args.cast_shadows:
         trees.append((f"HSH + shadows x{args.cast_shadows}", ROOT, ["--cast-shadows", args.cast_shadows]))
+    if args.flattened_starts:
+        trees.append(("HSH + flattened starts", ROOT, ["--flattened-starts"]))
     if args.baseline:
         trees.append(("HSH 6d85856", baseline_tree(), []))
     records = {}
