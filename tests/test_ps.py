@@ -379,3 +379,23 @@ def test_per_pixel_iterations_synchronise_once_per_active_set_update():
     assert used >= 3
     # per iteration: the pass's own nonzero and the LM step's; plus a constant for the exits
     assert c.count <= 2 * used + 2, (c.count, used)
+
+
+def test_independent_model_synchronises_a_few_times_per_lm_iteration():
+    """CUDA sync budget of the independent model's LM: the active set, and one failure check per small Cholesky."""
+    from torch_hsh.ps.design import ridge_profile
+    from torch_hsh.ps.optim import PixelProblem, lm_independent
+
+    n, l = _scene(100, 24, 22)
+    img = render(n, l, BlinnPhong(torch.full((100, 3), 0.5, dtype=DT), torch.full((100, 1), 0.3, dtype=DT),
+                                  torch.full((100, 1), 20.0, dtype=DT)), read_std=1e-3, seed=0)
+    view = torch.tensor([0.0, 0.0, 1.0], dtype=DT)
+    ch = PixelProblem(img.permute(1, 0, 2), torch.ones(100, 24, dtype=DT), l, view, 3, ridge_profile(3, DT, "cpu"), 1e-3)
+    start = torch.nn.functional.normalize(n + 0.1 * torch.randn(n.shape, generator=torch.Generator().manual_seed(1),
+                                                                 dtype=DT), dim=-1)
+    ch.set_ridge_scale(start)
+    with _HostSyncCounter() as c:
+        _, _, iters = lm_independent(ch, start, 8)
+    assert iters >= 3
+    # per iteration: the active set (1), the Cholesky checks of the Jacobian and of the trial cost (2)
+    assert c.count <= 3 * iters + 2, (c.count, iters)
