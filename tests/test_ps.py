@@ -399,3 +399,46 @@ def test_independent_model_synchronises_a_few_times_per_lm_iteration():
     assert iters >= 3
     # per iteration: the active set (1), the Cholesky checks of the Jacobian and of the trial cost (2)
     assert c.count <= 3 * iters + 2, (c.count, iters)
+
+
+def test_automatic_chunk_halves_on_out_of_memory(monkeypatch):
+    """With chunk_size=None a batch that runs out of device memory is retried at half the size; a user's chunk is kept."""
+    import torch_hsh.ps.coefficients as coef_mod
+    import torch_hsh.ps.refinement as ref_mod
+    from torch_hsh.ps._common import MIN_CHUNK, for_chunks
+
+    n, l = _scene(600, 16, 23)
+    img = render(n, l, BlinnPhong(torch.full((600, 3), 0.5, dtype=DT), torch.full((600, 1), 0.3, dtype=DT),
+                                  torch.full((600, 1), 20.0, dtype=DT)), read_std=1e-3, seed=0)
+    kw = dict(calibration_rounds=2, max_iter=3, refinement_passes=1, search_angles=())
+    plain = ps.solve_hsh(img, l, **kw)
+    real_refine, real_final = ref_mod.refine_shared_chunk, coef_mod.final_coefficients
+    seen = {"refine": [], "final": []}
+
+    def small_device(fn, key):
+        def wrapped(*a, **k):
+            p = a[1].shape[0]  # pixels of the batch (y for the refinement, normals for stage 5)
+            seen[key].append(p)
+            if p > MIN_CHUNK:
+                raise torch.cuda.OutOfMemoryError("simulated: the device holds at most MIN_CHUNK pixels")
+            return fn(*a, **k)
+        return wrapped
+
+    monkeypatch.setattr(ref_mod, "refine_shared_chunk", small_device(real_refine, "refine"))
+    monkeypatch.setattr(coef_mod, "final_coefficients", small_device(real_final, "final"))
+    shrunk = ps.solve_hsh(img, l, **kw)
+    assert max(seen["refine"]) > MIN_CHUNK and seen["refine"][-1] <= MIN_CHUNK  # it tried big, then halved
+    assert torch.equal(shrunk.normals, plain.normals)  # per-pixel results: the chunk does not matter
+    assert torch.equal(shrunk.coefficients, plain.coefficients)
+    with pytest.raises(torch.cuda.OutOfMemoryError):  # a chunk the user chose is not changed behind their back
+        ps.solve_hsh(img, l, chunk_size=600, **kw)
+    # the helper itself: every row exactly once, in order, whatever the halving
+    rows = []
+
+    def run(sl):
+        if sl.stop - sl.start > 300:
+            raise torch.cuda.OutOfMemoryError("simulated")
+        rows.extend(range(sl.start, sl.stop))
+
+    chunks, step = for_chunks(1000, 1000, run, shrink=True)
+    assert rows == list(range(1000)) and step == MIN_CHUNK and chunks == 4  # 1000 -> 500 -> 256 (the floor)

@@ -18,6 +18,7 @@ from typing import Optional
 
 import torch
 
+from ._common import for_chunks
 from .design import ridge_profile
 from .observations import Observations
 from .optim import PixelProblem
@@ -126,26 +127,28 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
     # temporaries of the solve: a smaller chunk than the refinement's bounds them (on the CPU
     # a fixed one; on a GPU, where launches cost more than bytes, an eighth of the refinement's)
     step = min(cfg.chunk, COEFFICIENT_CHUNK if dev.type == "cpu" else max(COEFFICIENT_CHUNK, cfg.chunk // 8))
+
+    def run(sl: slice) -> None:
+        n = ref.normals[sl]
+        ch = PixelProblem(d.y[sl].to(dt), ref.fit_weights[sl].to(dt), d.lights, view, cfg.order, profile, cfg.ridge)
+        Phi = ch.design(n)
+        if basis is not None:
+            # the robust weights served the normals; the coefficients fit every valid
+            # observation (shrunk toward the shared mix), which relights best
+            ch.set_ridge_scale(n, Phi)
+            assert ref.mixing is not None  # the shared model's refinement fills it
+            a = final_coefficients(ch, n, cfg.nonneg, prior=basis.T.unsqueeze(0) @ ref.mixing[sl], Phi=Phi)
+        else:
+            assert ref.ridge_diag is not None  # the independent model's refinement fills it
+            ch.ridge_diag = ref.ridge_diag[sl]
+            a = final_coefficients(ch, n, cfg.nonneg, Phi=Phi)
+        r = (ch.y - Phi @ a) * ch.sw.unsqueeze(-1)
+        resid[sl] = ((r * r).sum((-1, -2)) / (ch.w.sum(-1).clamp(min=1e-12) * C)).sqrt()
+        if pixels is None:
+            coefs[sl] = a.transpose(1, 2)
+        else:
+            coefs[pixels[sl]] = a.transpose(1, 2)
+
     with torch.no_grad():
-        for s in range(0, P, step):
-            sl = slice(s, min(P, s + step))
-            n = ref.normals[sl]
-            ch = PixelProblem(d.y[sl].to(dt), ref.fit_weights[sl].to(dt), d.lights, view, cfg.order, profile, cfg.ridge)
-            Phi = ch.design(n)
-            if basis is not None:
-                # the robust weights served the normals; the coefficients fit every valid
-                # observation (shrunk toward the shared mix), which relights best
-                ch.set_ridge_scale(n, Phi)
-                assert ref.mixing is not None  # the shared model's refinement fills it
-                a = final_coefficients(ch, n, cfg.nonneg, prior=basis.T.unsqueeze(0) @ ref.mixing[sl], Phi=Phi)
-            else:
-                assert ref.ridge_diag is not None  # the independent model's refinement fills it
-                ch.ridge_diag = ref.ridge_diag[sl]
-                a = final_coefficients(ch, n, cfg.nonneg, Phi=Phi)
-            r = (ch.y - Phi @ a) * ch.sw.unsqueeze(-1)
-            resid[sl] = ((r * r).sum((-1, -2)) / (ch.w.sum(-1).clamp(min=1e-12) * C)).sqrt()
-            if pixels is None:
-                coefs[sl] = a.transpose(1, 2)
-            else:
-                coefs[pixels[sl]] = a.transpose(1, 2)
+        for_chunks(P, step, run, shrink=cfg.chunk_auto)
     return Coefficients(coefficients=coefs, pixels=pixels, residual=resid)

@@ -183,7 +183,8 @@ def solve_hsh(
             ``None`` (default): 8192 on the CPU; on a GPU, where fewer and
             larger batches are faster, the largest that keeps a batch within a
             quarter of the free device memory (8192 to 262144, see
-            :func:`~torch_hsh.ps.settings.resolve_chunk`). The results do not
+            :func:`~torch_hsh.ps.settings.resolve_chunk`), halved and retried
+            if a batch still runs out of device memory. The results do not
             depend on it; ``info["chunk_size"]`` reports the one used.
         dtype: dtype of the outputs and of the coefficient fits (default
             float64; ``None``: the images' dtype).
@@ -273,7 +274,7 @@ def solve_hsh(
     chunk = resolve_chunk(cfg.chunk_size, obs.data.y.device, obs.data.y.shape[1], num_isotropic(cfg.order),
                           cfg.materials is None and basis is None, torch.empty(0, dtype=wdt).element_size(),
                           torch.empty(0, dtype=obs.data.dtype).element_size())
-    cfg = dataclasses.replace(cfg, chunk_size=chunk)
+    cfg = dataclasses.replace(cfg, chunk_size=chunk, chunk_auto=cfg.chunk_size is None)
     clock.cuda, clock.device = obs.data.y.device.type == "cuda", obs.data.y.device
     obs.info["chunk_size"] = float(cfg.chunk)
     clock.lap("observations")

@@ -20,6 +20,7 @@ from typing import Optional
 
 import torch
 
+from ._common import for_chunks
 from .design import MixedDesign
 from .optim import (
     PixelProblem,
@@ -163,38 +164,39 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
     wfin = torch.empty(P, L, dtype=d.y.dtype, device=dev)  # storage dtype: weights need no float64
     mixing = torch.empty(P, basis.shape[0], C, dtype=dt, device=dev) if basis is not None else None
     ridge_diag = None if shared else torch.empty(P, profile.shape[0], dtype=dt, device=dev)
-    starts = list(range(0, P, cfg.chunk))
-    it = starts
+    bar = None
     if cfg.progress:
         from tqdm.auto import tqdm
 
-        it = tqdm(starts, desc="HSH photometric stereo", unit="chunk")
-    total_iters = 0
-    moved = 0
+        bar = tqdm(total=P, desc="HSH photometric stereo", unit="px")
+    acc = {"iters": 0, "moved": 0}
+
+    def run(sl: slice) -> None:
+        if shared:
+            n, w, Wt, k = refine_shared_chunk(
+                basis, d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.max_iter,
+                _PIXEL_IRLS, cfg.search_angles, cfg.search_azimuths, wdt,
+            )
+            n = torch.nn.functional.normalize(n, dim=-1)
+            assert mixing is not None
+            mixing[sl] = Wt
+        else:
+            n, ch, k = refine_independent_chunk(
+                d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, view, cfg.order, profile, cfg.ridge, cfg.robust,
+                cfg.robust_iters, cfg.search_angles, cfg.search_azimuths, cfg.max_iter, obs.sigma_y,
+            )
+            w = ch.w
+            assert ridge_diag is not None
+            ridge_diag[sl] = ch.ridge_diag
+        normals[sl] = n
+        wfin[sl] = w
+        acc["iters"] += k
+        acc["moved"] += int(((n_start[sl] - n).norm(dim=-1) > 1e-6).sum())
+
     with torch.no_grad():
-        for s in it:
-            sl = slice(s, min(P, s + cfg.chunk))
-            if shared:
-                n, w, Wt, k = refine_shared_chunk(
-                    basis, d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.max_iter,
-                    _PIXEL_IRLS, cfg.search_angles, cfg.search_azimuths, wdt,
-                )
-                n = torch.nn.functional.normalize(n, dim=-1)
-                assert mixing is not None
-                mixing[sl] = Wt
-            else:
-                n, ch, k = refine_independent_chunk(
-                    d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, view, cfg.order, profile, cfg.ridge, cfg.robust,
-                    cfg.robust_iters, cfg.search_angles, cfg.search_azimuths, cfg.max_iter, obs.sigma_y,
-                )
-                w = ch.w
-                assert ridge_diag is not None
-                ridge_diag[sl] = ch.ridge_diag
-            total_iters += k
-            moved += int(((n_start[sl] - n).norm(dim=-1) > 1e-6).sum())
-            normals[sl] = n
-            wfin[sl] = w
+        chunks, _ = for_chunks(P, cfg.chunk, run, shrink=cfg.chunk_auto, progress=bar)
+    total_iters, moved = acc["iters"], acc["moved"]
     return Refinement(
         normals=normals, weights=wfin, fit_weights=w0 if shared else wfin, mixing=mixing, ridge_diag=ridge_diag,
-        iterations=total_iters, moved=moved, chunks=len(starts),
+        iterations=total_iters, moved=moved, chunks=chunks,
     )

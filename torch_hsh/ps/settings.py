@@ -53,6 +53,8 @@ class Settings:
     progress: bool
     cauchy_c: float = CAUCHY_C
     refinement_passes: int = 2
+    #: True when ``chunk_size`` was chosen by :func:`resolve_chunk` (it may then shrink on out-of-memory).
+    chunk_auto: bool = False
 
     @property
     def chunk(self) -> int:
