@@ -224,7 +224,8 @@ def main(argv=None):
         r, t = _timed(ps, dev, img_d, l_d, args.repeat, seed=0, **kw)
         t["mean_err_deg"] = _mean_err(ps, r.normals, gt)
         rec["diligent_sized"][name] = t
-        rows.append((f"{args.pixels} px x {args.lights} L, {name}", t["wall_s"], t["mean_err_deg"], t["peak_mb"]))
+        rows.append((f"{args.pixels} px x {args.lights} L, {name}", t["wall_s"], t["mean_err_deg"], t["peak_mb"],
+                     t["stages_s"]))
         if name == "default":
             n_dev = r.normals.detach().cpu().double()
         save()
@@ -235,7 +236,8 @@ def main(argv=None):
     rec["cpu_reference"] = {"wall_s": t_cpu, "threads": torch.get_num_threads(),
                             "mean_err_deg": _mean_err(ps, r_cpu.normals, gt),
                             "device_vs_cpu_mean_deg": float(agree.mean()), "device_vs_cpu_max_deg": float(agree.max())}
-    rows.append((f"same, CPU {torch.get_num_threads()} threads", t_cpu, rec["cpu_reference"]["mean_err_deg"], float("nan")))
+    rows.append((f"same, CPU {torch.get_num_threads()} threads", t_cpu, rec["cpu_reference"]["mean_err_deg"], float("nan"),
+                 {}))
     save()
 
     # 2. host synchronisations
@@ -265,7 +267,7 @@ def main(argv=None):
             t["pixels"] = int(m.sum())
             rec["real"][Path(d).name] = t
             rows.append((f"{Path(d).name} ({t['pixels']} px x {im.shape[0]} L)", t["wall_s"], t["mean_err_deg"],
-                         t["peak_mb"]))
+                         t["peak_mb"], t["stages_s"]))
             save()
             del im, li, m, r
 
@@ -280,7 +282,8 @@ def main(argv=None):
             r, t = _timed(ps, dev, imgs, lights, 1, mask=mask, seed=0, **kw)
             t["mean_err_deg"] = _mean_err(ps, r.normals, n_gt, mask)
             rec["large"][name] = t
-            rows.append((f"{args.size}^2 x {args.lights} L, {name}", t["wall_s"], t["mean_err_deg"], t["peak_mb"]))
+            rows.append((f"{args.size}^2 x {args.lights} L, {name}", t["wall_s"], t["mean_err_deg"], t["peak_mb"],
+                         t["stages_s"]))
             save()
             del r
 
@@ -290,7 +293,7 @@ def main(argv=None):
             rec["compiled_design"] = _compiled(ps, dev, img_d, l_d, gt, args.repeat)
             t = rec["compiled_design"]
             rows.append((f"{args.pixels} px, compiled design (1st {t['first_s']:.0f} s)", t["wall_s"],
-                         t["mean_err_deg"], t["peak_mb"]))
+                         t["mean_err_deg"], t["peak_mb"], t["stages_s"]))
         except Exception as err:
             rec["compiled_design_error"] = repr(err)[:2000]
             print("compile experiment failed:", repr(err)[:2000])
@@ -301,22 +304,9 @@ def main(argv=None):
     print(json.dumps({k: rec[k] for k in ("syncs", "profile", "cpu_reference") if k in rec}, indent=1, default=str))
     print(f"\n{rec['device']}, torch {rec['torch']}")
     print(f"{'problem':48s} {'wall s':>8s} {'err deg':>8s} {'peak MB':>9s}  stages (s)")
-    for (name, w, e, m), st in zip(rows, _stage_rows(rec)):
+    for name, w, e, m, stages in rows:
+        st = ", ".join(f"{k[:5]} {v:.3f}" for k, v in stages.items())
         print(f"{name:48s} {w:8.3f} {e:8.2f} {m:9.0f}  {st}")
-
-
-def _stage_rows(rec):
-    out = []
-    for key in ("diligent_sized",):
-        for t in rec.get(key, {}).values():
-            out.append(", ".join(f"{k[:5]} {v:.3f}" for k, v in t["stages_s"].items()))
-    out.append("")
-    for t in rec.get("real", {}).values():
-        out.append(", ".join(f"{k[:5]} {v:.3f}" for k, v in t["stages_s"].items()))
-    for k, t in rec.get("large", {}).items():
-        if isinstance(t, dict):
-            out.append(", ".join(f"{s[:5]} {v:.2f}" for s, v in t["stages_s"].items()))
-    return out + [""] * 10
 
 
 if __name__ == "__main__":

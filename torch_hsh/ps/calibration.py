@@ -79,6 +79,17 @@ def _calibration_subset(w0: torch.Tensor, n_pixels: int, seed: int) -> torch.Ten
     return usable[torch.randperm(usable.numel(), generator=g)[:n_pixels].to(dev)]
 
 
+def _median_scale(res: torch.Tensor, w: torch.Tensor) -> float:
+    """``1.4826 x`` the median residual over the observations with ``w > 0`` (1.0 if there are none).
+
+    The median is taken without boolean indexing (invalid entries become NaN
+    for ``nanmedian``), so on CUDA it costs one host synchronisation.
+    """
+    med = torch.where(w > 0, res, torch.full_like(res, float("nan"))).flatten().nanmedian()
+    s = float(1.4826 * med)  # NaN when no observation is valid
+    return s if math.isfinite(s) else 1.0
+
+
 def _fit_basis_brdfs(Phi, w, y, W, order, ridge_rel):
     """Shared basis BRDFs ``B (M, K)`` (unit rows) by weighted ridge LS over all pixels and channels."""
     M, K = W.shape[-1], Phi.shape[-1]
@@ -118,10 +129,7 @@ def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge
             W = Wt.transpose(1, 2)
             res = observation_residual(Psi, Wt, yT)
             if rnd < _SCALE_ROUNDS:
-                # median of the valid residuals without boolean indexing: one host sync, not two
-                med = torch.where(w0 > 0, res, torch.full_like(res, float("nan"))).flatten().nanmedian()
-                s_med = float(1.4826 * med)  # NaN when no observation is valid
-                scale = max(s_med, 1e-12) if math.isfinite(s_med) else 1.0
+                scale = max(_median_scale(res, w0), 1e-12)
             w = cauchy_weights(res, w0, scale, c)
         n, _, _ = lm_normals(MixedDesign(B, lights, order), yT, w, rd, n, lm_iter, fd_step(y.dtype))
     return B, scale, n
@@ -255,10 +263,7 @@ def fixed_calibration(obs: Observations, n_start: torch.Tensor, cfg: Settings, b
             yT, wS = d.y[S].to(dt).transpose(1, 2), w0[S].to(dt)
             Psi = MixedDesign(B, d.lights, cfg.order)(n_start[S])
             Wt, _, _ = solve_weights(Psi, wS, yT, _ridge_diag(Psi, wS, 1e-4))
-            res = observation_residual(Psi, Wt, yT)
-            med = torch.where(wS > 0, res, torch.full_like(res, float("nan"))).flatten().nanmedian()
-            s_med = float(1.4826 * med)  # NaN when no observation is valid
-            scale = s_med if math.isfinite(s_med) else 1.0
+            scale = _median_scale(observation_residual(Psi, Wt, yT), wS)
         info["robust_scale_estimated"] = 1.0
     scale = max(float(scale), 3.0 * obs.sigma_y, 1e-4 * obs.typical, 1e-12)
     info["materials"] = float(B.shape[0])

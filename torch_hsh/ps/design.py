@@ -188,7 +188,7 @@ def _factor_tables(order: int):
 
 def _design_factors(n: torch.Tensor, lights: torch.Tensor, order: int):
     """``X (p, L, U)`` and ``T (p, U, K)`` with ``X @ T`` the shading-weighted design matrix."""
-    U, qcol, rows, cols_k, src, coef = _factor_tables(order)
+    U = _factor_tables(order)[0]
     dev, dt = n.device, n.dtype
     K = num_isotropic(order)
     nrm = torch.nn.functional.normalize(n, dim=-1)

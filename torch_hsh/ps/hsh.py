@@ -268,14 +268,13 @@ def solve_hsh(
         calibration_rounds, calibration_starts, nonneg, chunk_size, work_dtype, seed, progress,
         refinement_passes=refinement_passes,
     )
-    clock = _StageClock(t_start, images.device if isinstance(images, torch.Tensor) else None)  # set again after stage 1
     obs = observe(images, lights, intensities, mask, dtype, dark_fraction, noise_sigma, saturation, valid)  # 1
+    clock = _StageClock(t_start, obs.data.y.device)
     wdt = obs.data.dtype if cfg.work_dtype is None else cfg.work_dtype
     chunk = resolve_chunk(cfg.chunk_size, obs.data.y.device, obs.data.y.shape[1], num_isotropic(cfg.order),
-                          cfg.materials is None and basis is None, torch.empty(0, dtype=wdt).element_size(),
+                          cfg.materials is None, torch.empty(0, dtype=wdt).element_size(),
                           torch.empty(0, dtype=obs.data.dtype).element_size())
     cfg = dataclasses.replace(cfg, chunk_size=chunk, chunk_auto=cfg.chunk_size is None)
-    clock.cuda, clock.device = obs.data.y.device.type == "cuda", obs.data.y.device
     obs.info["chunk_size"] = float(cfg.chunk)
     clock.lap("observations")
     n_init = initial_normals(obs, init)  # 2
@@ -318,7 +317,6 @@ def solve_hsh(
 def _check_basis(basis, order, materials) -> int:
     """Validate ``basis`` of :func:`solve_hsh`; returns the number of materials it implies."""
     from .._checks import check_order
-    from ..basis import num_isotropic
 
     K = num_isotropic(check_order(order))
     if not isinstance(basis, torch.Tensor) or basis.dim() != 2 or basis.shape[1] != K or not 1 <= basis.shape[0] <= 8:
@@ -340,15 +338,14 @@ class _StageClock:
     a stage's time is its own and not that of the queued kernels before it.
     """
 
-    def __init__(self, t0: float, device: Optional[torch.device] = None):
+    def __init__(self, t0: float, device: torch.device):
         self.t = t0
-        self.cuda = device is not None and device.type == "cuda"
         self.device = device
         self.laps: Dict[str, float] = {}
         self.rss: Dict[str, Optional[float]] = {}
 
     def lap(self, name: str) -> None:
-        if self.cuda:
+        if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         now = time.perf_counter()
         self.laps[name] = now - self.t
