@@ -69,6 +69,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--cast-shadows", type=int, default=0)
     ap.add_argument("--flattened-starts", action="store_true")
+    ap.add_argument("--basis-ridge", type=float, default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     from torch_hsh import ps
@@ -112,6 +113,8 @@ def main():
         kw["cast_shadows"] = args.cast_shadows
     if args.flattened_starts:
         kw["calibration_starts"] = ("lambertian", "independent", "flattened")
+    if args.basis_ridge is not None:
+        kw["basis_ridge"] = args.basis_ridge
     if args.materials != "default":
         kw["materials"] = None if args.materials == "none" else (args.materials if args.materials == "auto" else int(args.materials))
     import torch_hsh

@@ -6,6 +6,7 @@ Usage:
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat --baseline   # + the 6d85856 solver
     python benchmarks/bench_diligent.py ../shared/data/diligent_harvest --cast-shadows 1  # + the shadow loop
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat --flattened-starts     # + the opt-in starts
+    python benchmarks/bench_diligent.py ../shared/data/diligent_cat --seeds 0 1 2 3 4 --basis-ridge 3e-3 1e-2
 
 Arguments are object folders (``light_directions.txt``, images, ``mask.png``,
 ``Normal_gt.mat``) or the root of a DiLiGenT download (every ``*PNG`` folder
@@ -18,7 +19,10 @@ IA14, as quoted in the project's issue tracker) are printed beside objects
 whose name matches. Every solve runs in its own process (``_ps_worker.py``),
 so peak memory per solve is reported too. ``--cast-shadows R`` adds a row
 for the solver with ``R`` rounds of the cast-shadow loop (``solve_hsh(...,
-cast_shadows=R)``) beside the default solver, with the same seeds.
+cast_shadows=R)``) beside the default solver, with the same seeds;
+``--basis-ridge R [R ...]`` a row per relative ridge on the shared basis
+BRDFs (``solve_hsh(basis_ridge=R)``), the knob that trades accuracy on
+specular objects against the seed spread (docs/photometric_stereo.md).
 """
 from __future__ import annotations
 
@@ -80,6 +84,8 @@ def main(argv=None):
                     help="seeds of the baseline runs (default: the same as --seeds)")
     ap.add_argument("--flattened-starts", action="store_true",
                     help="add a row: the HSH solver with the opt-in flattened calibration starts, same seeds")
+    ap.add_argument("--basis-ridge", type=float, nargs="+", default=[],
+                    help="add a row per value: the HSH solver with this relative ridge on the basis BRDFs, same seeds")
     ap.add_argument("--cast-shadows", type=int, default=0,
                     help="R > 0: also run the solver with R rounds of the cast-shadow loop")
     ap.add_argument("--json", default=None, help="write every record to this JSON file")
@@ -100,6 +106,10 @@ def main(argv=None):
         trees.append((f"HSH + shadows x{args.cast_shadows}", ROOT, ["--cast-shadows", args.cast_shadows]))
     if args.flattened_starts:
         trees.append(("HSH + flattened starts", ROOT, ["--flattened-starts"]))
+    for r in args.basis_ridge:
+        if not 0 < r <= 1:
+            ap.error(f"--basis-ridge values must be in (0, 1], got {r}")
+        trees.append((f"HSH basis ridge {r:g}", ROOT, ["--basis-ridge", r]))
     if args.baseline:
         trees.append(("HSH 6d85856", baseline_tree(), []))
     records = {}

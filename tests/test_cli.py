@@ -389,3 +389,14 @@ def test_flattened_starts_flag_reaches_the_solver(tmp_path, capsys, fake_solver)
     code, _ = _run(["ps", "--out", str(tmp_path / "b"), *FAST, "--flattened-starts"], capsys)
     assert code == 0
     assert fake_solver.calls[-1]["calibration_starts"] == ("lambertian", "independent", "flattened")
+
+
+def test_basis_ridge_flag_reaches_the_solver_and_is_checked(tmp_path, capsys, fake_solver):
+    code, _ = _run(["ps", "--out", str(tmp_path / "a"), *FAST], capsys)
+    assert code == 0 and fake_solver.calls[-1]["basis_ridge"] == 1e-3
+    code, _ = _run(["ps", "--out", str(tmp_path / "b"), *FAST, "--basis-ridge", "0.01"], capsys)
+    assert code == 0 and fake_solver.calls[-1]["basis_ridge"] == 0.01
+    for bad in ("0", "-1", "nan", "2", "abc"):
+        with pytest.raises(SystemExit):
+            cli.main(["ps", "--out", str(tmp_path / "c"), *FAST, "--basis-ridge", bad])
+        assert "--basis-ridge" in capsys.readouterr().err

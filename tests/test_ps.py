@@ -329,6 +329,29 @@ def test_flattened_calibration_starts_add_two_candidates():
         ps.solve_hsh(img, l, calibration_starts=("lambertian", "steeper"))
 
 
+def test_basis_ridge_smooths_the_basis_brdfs_and_is_validated():
+    from torch_hsh.ps.design import ridge_profile
+
+    n, l = _scene(40, 16, 11)
+    img = render(n, l, BlinnPhong(torch.full((40, 3), 0.5, dtype=DT), torch.full((40, 1), 0.3, dtype=DT),
+                                  torch.full((40, 1), 20.0, dtype=DT)), read_std=1e-3, seed=0)
+    kw = dict(calibration_rounds=2, max_iter=2, refinement_passes=1, search_angles=())
+    base = ps.solve_hsh(img, l, **kw)
+    same = ps.solve_hsh(img, l, basis_ridge=1e-3, **kw)
+    assert torch.equal(base.normals, same.normals) and torch.equal(base.basis_brdfs, same.basis_brdfs)
+    assert base.info["basis_ridge"] == 1e-3
+    prof = ridge_profile(3, DT, "cpu")
+
+    def roughness(B):  # the penalty the ridge puts on unit-norm basis BRDFs: weight on the high orders
+        return float((B.double() ** 2 * prof).sum())
+
+    rough = [roughness(ps.solve_hsh(img, l, basis_ridge=r, **kw).basis_brdfs) for r in (1e-3, 1e-1, 1.0)]
+    assert rough[0] > rough[1] > rough[2]
+    for bad in (0.0, -1e-3, float("nan"), float("inf"), 2.0, True, "1e-3"):
+        with pytest.raises(ValueError, match="basis_ridge"):
+            ps.solve_hsh(img, l, basis_ridge=bad)
+
+
 class _HostSyncCounter:
     """Count the operations that make a CUDA stream wait for the host, by running the CPU path under a dispatch mode.
 

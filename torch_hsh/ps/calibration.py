@@ -136,7 +136,7 @@ def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge
 
 
 def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y, n_pixels, rounds, starts, seed,
-                      work_dtype, c, progress, info):
+                      work_dtype, c, progress, info, basis_ridge=_BASIS_RIDGE):
     """Calibrate the shared basis BRDFs on a seeded random subset of ``n_pixels`` pixels.
 
     The alternation (:func:`_calibrate`) keeps the basin it starts in, so it
@@ -179,7 +179,7 @@ def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y,
         # in the work dtype (the (M K, M K) basis solve is always float64)
         B_k, scale_k, n_k = _calibrate(
             yS.to(work_dtype), w0S.to(work_dtype), nS0.to(work_dtype), lights.to(work_dtype), order,
-            W0.to(work_dtype), rounds, _CAL_IRLS, _CAL_LM_ITERS, c,
+            W0.to(work_dtype), rounds, _CAL_IRLS, _CAL_LM_ITERS, c, basis_ridge,
         )
         cands.append((B_k.to(dt), scale_k, k_s, n_k.to(dt)))
     sig = min(t[1] for t in cands)
@@ -232,13 +232,14 @@ def calibrate(obs: Observations, n_start: torch.Tensor, cfg: Settings) -> Calibr
         B, scale, S, n_cal = _calibrate_shared(
             d.y, d.lights, w0, n_start, cfg.order, cfg.materials, profile, cfg.ridge, obs.sigma_y,
             cfg.calibration_pixels, cfg.calibration_rounds, cfg.calibration_starts, cfg.seed, wdt, cfg.cauchy_c,
-            cfg.progress, info,
+            cfg.progress, info, cfg.basis_ridge,
         )
         # floor: the noise level, and 1e-4 of the typical brightness (quantisation,
         # float32 rounding) so that noise-free data do not get a zero scale
         typical = obs.typical
         scale = max(scale, 3.0 * obs.sigma_y, 1e-4 * typical, 1e-12)
     info["materials"] = float(cfg.materials)
+    info["basis_ridge"] = cfg.basis_ridge
     info["robust_scale"] = scale
     info["calibration_pixels"] = float(S.numel())
     return Calibration(basis=B, scale=scale, subset=S, subset_normals=n_cal)

@@ -104,6 +104,7 @@ def solve_hsh(
     basis: Optional[torch.Tensor] = None,
     robust_scale: Optional[float] = None,
     refinement_passes: int = 2,
+    basis_ridge: float = 1e-3,
 ) -> HSHResult:
     r"""Photometric stereo with isotropic Helmholtz HSH BRDFs.
 
@@ -216,6 +217,16 @@ def solve_hsh(
             scene of ``docs/photometric_stereo.md``, for about 30–60 % more time;
             ``refinement_passes=1, max_iter=8`` is the single pass of earlier versions). Ignored by the
             independent model.
+        basis_ridge: shared model: relative ridge on the basis BRDFs ``B``
+            (``basis_ridge`` x the mean diagonal of their normal equations, times
+            the order profile ``p(p+1)/2 + r(r+1)/2``: a smoothness penalty).
+            It conditions the calibration: the normals' elevations and the
+            basis BRDFs trade off along a nearly flat valley of the loss, and
+            the ridge picks the point on it. Larger values make the result
+            depend less on the calibration subset (``seed``) and on
+            interreflections, at the cost of smoother lobes (less accurate on
+            sharp specular objects). Default ``1e-3``; the measured trade-off is
+            in ``docs/photometric_stereo.md``. ``info["basis_ridge"]`` records it.
         robust_scale: with ``basis``: the robust residual scale in image units
             (``info["robust_scale"]`` of that earlier result); ``None``
             estimates it from the calibration subset at the start normals.
@@ -252,7 +263,7 @@ def solve_hsh(
                   calibration_pixels=calibration_pixels, calibration_rounds=calibration_rounds,
                   calibration_starts=calibration_starts, dark_fraction=dark_fraction, noise_sigma=noise_sigma,
                   saturation=saturation, nonneg=nonneg, chunk_size=chunk_size, dtype=dtype, work_dtype=work_dtype,
-                  seed=seed, progress=progress, refinement_passes=refinement_passes)
+                  seed=seed, progress=progress, refinement_passes=refinement_passes, basis_ridge=basis_ridge)
         return shadow_loop(solve_hsh, images, lights, mask, valid, cast_shadows, shadow_bias, init, **kw)
     t_start = time.perf_counter()
     if basis is not None:
@@ -266,7 +277,7 @@ def solve_hsh(
     cfg = Settings.validated(
         order, materials, ridge, search_angles, search_azimuths, max_iter, robust, robust_iters, calibration_pixels,
         calibration_rounds, calibration_starts, nonneg, chunk_size, work_dtype, seed, progress,
-        refinement_passes=refinement_passes,
+        refinement_passes=refinement_passes, basis_ridge=basis_ridge,
     )
     obs = observe(images, lights, intensities, mask, dtype, dark_fraction, noise_sigma, saturation, valid)  # 1
     clock = _StageClock(t_start, obs.data.y.device)

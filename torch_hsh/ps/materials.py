@@ -72,7 +72,7 @@ from typing import List, Tuple
 
 import torch
 
-from .calibration import _BASIS_RIDGE, _CAL_LM_ITERS, _calibrate, _fit_basis_brdfs, _initial_mixing
+from .calibration import _CAL_LM_ITERS, _calibrate, _fit_basis_brdfs, _initial_mixing
 from .design import _design_factors
 from .lambertian import _solve_flat, trimmed_weights
 from .observations import Observations
@@ -168,7 +168,7 @@ def one_standard_error_choice(totals: torch.Tensor, count: float) -> Tuple[int, 
     return chosen, [float(v) for v in crit], [float(v) for v in se]
 
 
-def _fold_residuals(yS, w0S, w_start, Phi, W, order, held, scale, c, passes):
+def _fold_residuals(yS, w0S, w_start, Phi, W, order, held, scale, c, passes, basis_ridge):
     """Refit ``B`` and the mixing weights without the lights ``held`` at fixed normals; residuals ``(p, L)``.
 
     ``Phi (p, L, K)`` design at the normals, ``W (p, C, M)`` start mixing weights,
@@ -182,7 +182,7 @@ def _fold_residuals(yS, w0S, w_start, Phi, W, order, held, scale, c, passes):
     w[:, held] = 0
     yT = yS.transpose(1, 2).contiguous()
     for _ in range(passes):
-        B = _fit_basis_brdfs(Phi, w, yS, W, order, _BASIS_RIDGE)
+        B = _fit_basis_brdfs(Phi, w, yS, W, order, basis_ridge)
         Psi = (Phi @ B.T).transpose(1, 2).contiguous()  # (p, M, L)
         Wt, _, _ = solve_weights(Psi, w, yT, _ridge_diag(Psi, w_tr, 1e-4))
         W = Wt.transpose(1, 2)
@@ -229,7 +229,7 @@ def select_materials(obs: Observations, n_start: torch.Tensor, cfg: Settings,
             # the normals (and a start for B, W) from a shortened calibration on every light ...
             W0 = _initial_mixing(alb, M, cfg.seed).to(wdt)
             B, scale_M, n = _calibrate(yS, w0S, nS, lights, cfg.order, W0, rounds, _SELECT_IRLS, _CAL_LM_ITERS,
-                                       cfg.cauchy_c)
+                                       cfg.cauchy_c, cfg.basis_ridge)
             n = torch.nn.functional.normalize(n, dim=-1)
             X, T = _design_factors(n, lights, cfg.order)
             Phi = X @ T
@@ -243,7 +243,7 @@ def select_materials(obs: Observations, n_start: torch.Tensor, cfg: Settings,
                 if held.numel() == 0:
                     continue
                 r = _fold_residuals(yS, w0S, w, Phi, Wt.transpose(1, 2), cfg.order, held, scale_M,
-                                    cfg.cauchy_c, _FOLD_PASSES)
+                                    cfg.cauchy_c, _FOLD_PASSES, cfg.basis_ridge)
                 res_M[:, held] = r[:, held]
             scales.append(scale_M)
             res_all.append(res_M)

@@ -53,6 +53,8 @@ class Settings:
     progress: bool
     cauchy_c: float = CAUCHY_C
     refinement_passes: int = 2
+    #: Relative ridge on the shared basis BRDFs (see :data:`BASIS_RIDGE`).
+    basis_ridge: float = 1e-3
     #: True when ``chunk_size`` was chosen by :func:`resolve_chunk` (it may then shrink on out-of-memory).
     chunk_auto: bool = False
 
@@ -83,6 +85,7 @@ class Settings:
         seed,
         progress,
         refinement_passes=2,
+        basis_ridge=1e-3,
     ) -> "Settings":
         order = check_order(order)
         materials = _check_materials(materials)
@@ -103,6 +106,10 @@ class Settings:
             )
         if isinstance(refinement_passes, bool) or not isinstance(refinement_passes, int) or not 1 <= refinement_passes <= 5:
             raise ValueError(f"`refinement_passes` must be an integer in [1, 5], got {refinement_passes!r}")
+        if isinstance(basis_ridge, bool) or not isinstance(basis_ridge, numbers.Real) \
+                or not math.isfinite(basis_ridge) or not 0 < float(basis_ridge) <= 1:
+            raise ValueError(f"`basis_ridge` must be a number in (0, 1] (relative to the mean diagonal of the "
+                             f"basis BRDFs' normal equations), got {basis_ridge!r}")
         if work_dtype is not None and work_dtype not in (torch.float32, torch.float64):
             raise ValueError(f"`work_dtype` must be torch.float32, torch.float64 or None, got {work_dtype!r}")
         if int(calibration_pixels) < 1 or int(calibration_rounds) < 0:
@@ -128,6 +135,7 @@ class Settings:
             seed=seed,
             progress=progress,
             refinement_passes=int(refinement_passes),
+            basis_ridge=float(basis_ridge),
         )
 
 
