@@ -393,7 +393,7 @@ def test_flattened_starts_flag_reaches_the_solver(tmp_path, capsys, fake_solver)
 
 def test_basis_ridge_flag_reaches_the_solver_and_is_checked(tmp_path, capsys, fake_solver):
     code, _ = _run(["ps", "--out", str(tmp_path / "a"), *FAST], capsys)
-    assert code == 0 and fake_solver.calls[-1]["basis_ridge"] == 1e-3
+    assert code == 0 and fake_solver.calls[-1]["basis_ridge"] == ps.DEFAULT_BASIS_RIDGE
     code, _ = _run(["ps", "--out", str(tmp_path / "b"), *FAST, "--basis-ridge", "0.01"], capsys)
     assert code == 0 and fake_solver.calls[-1]["basis_ridge"] == 0.01
     for bad in ("0", "-1", "nan", "2", "abc"):

@@ -337,9 +337,9 @@ def test_basis_ridge_smooths_the_basis_brdfs_and_is_validated():
                                   torch.full((40, 1), 20.0, dtype=DT)), read_std=1e-3, seed=0)
     kw = dict(calibration_rounds=2, max_iter=2, refinement_passes=1, search_angles=())
     base = ps.solve_hsh(img, l, **kw)
-    same = ps.solve_hsh(img, l, basis_ridge=1e-3, **kw)
+    same = ps.solve_hsh(img, l, basis_ridge=ps.DEFAULT_BASIS_RIDGE, **kw)
     assert torch.equal(base.normals, same.normals) and torch.equal(base.basis_brdfs, same.basis_brdfs)
-    assert base.info["basis_ridge"] == 1e-3
+    assert base.info["basis_ridge"] == ps.DEFAULT_BASIS_RIDGE == 3e-3
     prof = ridge_profile(3, DT, "cpu")
 
     def roughness(B):  # the penalty the ridge puts on unit-norm basis BRDFs: weight on the high orders

@@ -493,10 +493,10 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--flattened-starts", action="store_true",
                    help="two more calibration starts with flattened Lambertian normals (opt-in, about +25%% time; "
                         "see docs/photometric_stereo.md)")
-    p.add_argument("--basis-ridge", type=_basis_ridge_arg, default=1e-3,
-                   help="relative ridge on the shared basis BRDFs (default 1e-3); larger values trade accuracy on "
-                        "specular objects for results that depend less on the calibration seed (see "
-                        "docs/photometric_stereo.md)")
+    p.add_argument("--basis-ridge", type=_basis_ridge_arg, default=None,
+                   help="relative ridge on the shared basis BRDFs (default torch_hsh.ps.DEFAULT_BASIS_RIDGE, 3e-3); "
+                        "larger values trade accuracy on sharp specular lobes for results that depend less on the "
+                        "calibration seed (see docs/photometric_stereo.md)")
     p.add_argument("--depth", action="store_true",
                    help="integrate the normals: write depth.npy and depth.exr (pixel units, orthographic) and surface.png")
     p.add_argument("--mesh", nargs="?", const="ply", choices=("ply", "obj"), default=None,
@@ -593,7 +593,7 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         kw: Dict[str, Any] = {"cast_shadows": args.cast_shadows} if args.cast_shadows else {}
         if args.flattened_starts:
             kw["calibration_starts"] = ("lambertian", "independent", "flattened")
-        kw["basis_ridge"] = args.basis_ridge
+        kw["basis_ridge"] = ps.DEFAULT_BASIS_RIDGE if args.basis_ridge is None else args.basis_ridge
         res = ps.solve_hsh(imgs, lights, inten, mask, order=order, materials=materials, progress=not args.quiet, **kw)
         t_hsh = time.perf_counter() - t
         rows.append((f"HSH (order {order})", *_errors(res.normals, gt, mask), t_hsh))

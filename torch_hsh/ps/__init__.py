@@ -25,9 +25,10 @@ from .hsh import solve_hsh
 from .lambertian import LambertianResult, lambertian_ls, robust_lambertian, trimmed_weights
 from .observations import observation_weights
 from .result import HoldoutResult, HSHResult, directional_albedo_view, holdout_evaluation
-from .settings import DEFAULT_MATERIALS, DEFAULT_ORDER
+from .settings import DEFAULT_BASIS_RIDGE, DEFAULT_MATERIALS, DEFAULT_ORDER
 
 __all__ = [
+    "DEFAULT_BASIS_RIDGE",
     "DEFAULT_MATERIALS",
     "DEFAULT_ORDER",
     "HSHResult",

@@ -33,7 +33,7 @@ from .optim import (
 )
 from .observations import Observations
 from .refinement import refine_independent_chunk
-from .settings import Settings
+from .settings import DEFAULT_BASIS_RIDGE, Settings
 
 __all__ = ["Calibration", "calibrate", "fixed_calibration"]
 
@@ -43,7 +43,6 @@ _INDEPENDENT_START_ITERS = 8  # LM iterations of the independent-model start on 
 _CAL_IRLS = 5  # IRLS passes (+1) per calibration round
 _CAL_LM_ITERS = 4  # LM iterations of the subset normals per calibration round
 _SCALE_ROUNDS = 3  # calibration rounds that re-estimate the robust scale; later rounds keep it (MM-style)
-_BASIS_RIDGE = 1e-3  # relative ridge (times the order profile) on the basis BRDFs
 #: Slope factors of the ``"flattened"`` calibration starts: the robust Lambertian normals with
 #: their (x, y) scaled by these and renormalised. Specular reflection biases a Lambertian fit
 #: toward steeper normals (about +10 deg of elevation on a Blinn-Phong height field), and the
@@ -105,7 +104,7 @@ def _fit_basis_brdfs(Phi, w, y, W, order, ridge_rel):
     return _unit_rows(torch.linalg.solve_ex(A, r)[0].reshape(M, K).to(y.dtype))  # SPD (ridge): no error check
 
 
-def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge=_BASIS_RIDGE, weight_ridge=1e-4):
+def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge=DEFAULT_BASIS_RIDGE, weight_ridge=1e-4):
     """Alternate (basis BRDFs, mixing weights, robust weights) and the normals on a pixel subset.
 
     Every round: ``irls + 1`` Cauchy-IRLS passes of (fit ``B`` over all
@@ -136,7 +135,7 @@ def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge
 
 
 def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y, n_pixels, rounds, starts, seed,
-                      work_dtype, c, progress, info, basis_ridge=_BASIS_RIDGE):
+                      work_dtype, c, progress, info, basis_ridge=DEFAULT_BASIS_RIDGE):
     """Calibrate the shared basis BRDFs on a seeded random subset of ``n_pixels`` pixels.
 
     The alternation (:func:`_calibrate`) keeps the basin it starts in, so it

@@ -58,7 +58,7 @@ from .observations import observation_weights, observe
 from .materials import select_materials
 from .refinement import refine
 from .result import HoldoutResult, HSHResult, directional_albedo_view, holdout_evaluation
-from .settings import AUTO, DEFAULT_MATERIALS, DEFAULT_ORDER, Settings, resolve_chunk
+from .settings import AUTO, DEFAULT_BASIS_RIDGE, DEFAULT_MATERIALS, DEFAULT_ORDER, Settings, resolve_chunk
 
 __all__ = [
     "HSHResult",
@@ -104,7 +104,7 @@ def solve_hsh(
     basis: Optional[torch.Tensor] = None,
     robust_scale: Optional[float] = None,
     refinement_passes: int = 2,
-    basis_ridge: float = 1e-3,
+    basis_ridge: float = DEFAULT_BASIS_RIDGE,
 ) -> HSHResult:
     r"""Photometric stereo with isotropic Helmholtz HSH BRDFs.
 
@@ -225,7 +225,8 @@ def solve_hsh(
             the ridge picks the point on it. Larger values make the result
             depend less on the calibration subset (``seed``) and on
             interreflections, at the cost of smoother lobes (less accurate on
-            sharp specular objects). Default ``1e-3``; the measured trade-off is
+            sharp specular objects). Default ``3e-3`` (:data:`DEFAULT_BASIS_RIDGE`;
+            ``1e-3`` before 2026-11-29); the measured trade-off is
             in ``docs/photometric_stereo.md``. ``info["basis_ridge"]`` records it.
         robust_scale: with ``basis``: the robust residual scale in image units
             (``info["robust_scale"]`` of that earlier result); ``None``
