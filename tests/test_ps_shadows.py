@@ -66,6 +66,27 @@ def test_loop_keeps_the_first_solves_basis_brdfs():
     assert kws[1]["basis"] is B and kws[1]["robust_scale"] == 0.25 and kws[1]["order"] == 3
 
 
+def test_loop_reports_the_first_calibration_and_keeps_its_number_of_materials():
+    img, l, n, _ = _scene(32)
+    mask = torch.ones(n.shape[:2], dtype=torch.bool)
+    B = torch.nn.functional.normalize(torch.randn(3, 20, dtype=torch.float64), dim=-1)
+    kws = []
+    first = {"robust_scale": 0.25, "calibration_start": 1.0, "calibration_pixels": 2048.0, "basis_ridge": 3e-3,
+             "materials_chosen": 3.0}
+
+    def solve(images, lights, mask=None, valid=None, init=None, **kw):
+        kws.append(kw)
+        info = dict(first) if len(kws) == 1 else {"robust_scale": 0.25, "basis_given": 1.0, "calibration_pixels": 0.0}
+        return SimpleNamespace(normals=n.clone(), mask=mask, info=info, basis_brdfs=B)
+
+    res = shadow_loop(solve, img, l, mask, None, 1, 0.25, None, materials="auto", basis_ridge=3e-3)
+    assert kws[0]["materials"] == "auto" and kws[1]["materials"] == 3  # "auto" resolved by the first solve
+    assert kws[1]["basis_ridge"] == 3e-3
+    for k in ("calibration_start", "calibration_pixels", "basis_ridge", "materials_chosen"):
+        assert res.info[k] == first[k], k
+    assert "basis_given" not in res.info and res.info["shadow_rounds"] == 1.0
+
+
 def test_cast_shadows_arguments_are_checked():
     img, l, _, _ = _scene(16)
     with pytest.raises(ValueError, match="cast_shadows"):
@@ -85,4 +106,17 @@ def test_solve_hsh_with_cast_shadows_runs_end_to_end():
     img = render(n, l, Lambertian(torch.full((24, 24, 3), 0.6, dtype=torch.float64)), visibility=vis, ambient=0.3)
     r = ps.solve_hsh(img.float(), l.float(), cast_shadows=1, calibration_pixels=256, calibration_rounds=3, max_iter=3)
     assert "shadow_rounds" in r.info and 0 <= r.info["shadowed_fraction"] < 1
+    assert bool(torch.isfinite(r.normals).all())
+
+
+def test_cast_shadows_with_automatic_materials_and_a_basis_ridge():
+    img, l, n, vis = _scene(16)
+    from torch_hsh.brdf import Lambertian
+    from torch_hsh.render import render
+
+    img = render(n, l, Lambertian(torch.full((16, 16, 3), 0.6, dtype=torch.float64)), visibility=vis, ambient=0.3)
+    r = ps.solve_hsh(img.float(), l.float(), cast_shadows=1, materials="auto", basis_ridge=1e-2,
+                     calibration_pixels=128, calibration_rounds=2, max_iter=2, refinement_passes=1)
+    assert r.info["basis_ridge"] == 1e-2 and "materials_chosen" in r.info
+    assert r.basis_brdfs.shape[0] == r.info["materials_chosen"]
     assert bool(torch.isfinite(r.normals).all())

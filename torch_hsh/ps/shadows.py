@@ -58,6 +58,7 @@ def shadow_loop(solve: Callable, images: torch.Tensor, lights: torch.Tensor, mas
     if not (isinstance(bias, (int, float)) and bias >= 0):
         raise ValueError(f"`shadow_bias` must be a number >= 0 (pixels), got {bias!r}")
     res = solve(images, lights, mask=mask, valid=valid, init=init, **kwargs)
+    first_info = dict(res.info)
     m = res.mask
     occluded = torch.zeros(images.shape[:3], dtype=torch.bool, device=images.device)
     n_obs = max(int(m.sum()) * images.shape[0], 1)
@@ -80,9 +81,17 @@ def shadow_loop(solve: Callable, images: torch.Tensor, lights: torch.Tensor, mas
             # keep the first solve's basis BRDFs and robust scale: the visibility changes a few
             # observations, not the object's materials, and a fresh calibration from other start
             # normals would move the basis more than the shadows do (docs/photometric_stereo.md)
-            kw.update(basis=res.basis_brdfs, robust_scale=float(res.info["robust_scale"]))
+            # (``materials`` then follows the basis: "auto" was resolved by the first solve)
+            kw.update(basis=res.basis_brdfs, robust_scale=float(res.info["robust_scale"]),
+                      materials=int(res.basis_brdfs.shape[0]))
         res = solve(images, lights, mask=mask, valid=v, init=res.normals.to(images.dtype), **kw)
         done += 1
+    if done:
+        # the re-solves reuse the first solve's calibration: report that calibration, not "basis given"
+        for k, v in first_info.items():
+            if k.startswith(("calibration_", "materials", "basis_ridge")):
+                res.info[k] = v
+        res.info.pop("basis_given", None)
     res.info["shadow_rounds"] = float(done)
     res.info["shadowed_fraction"] = int(occluded.sum()) / n_obs
     res.info["shadow_time_s"] = t_shadow
