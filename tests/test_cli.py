@@ -400,3 +400,18 @@ def test_basis_ridge_flag_reaches_the_solver_and_is_checked(tmp_path, capsys, fa
         with pytest.raises(SystemExit):
             cli.main(["ps", "--out", str(tmp_path / "c"), *FAST, "--basis-ridge", bad])
         assert "--basis-ridge" in capsys.readouterr().err
+
+
+def test_holdout_uses_the_same_solver_options(tmp_path, capsys, fake_solver, monkeypatch):
+    seen = {}
+
+    def holdout(images, lights, intensities=None, mask=None, holdout=10, seed=0, **kw):
+        seen.update(kw, holdout=holdout)
+        return SimpleNamespace(test_indices=torch.arange(holdout), relative_rmse=0.1, rmse=0.01,
+                               lambertian_relative_rmse=0.2)
+
+    monkeypatch.setattr(ps, "holdout_evaluation", holdout)
+    code, _ = _run(["ps", "--out", str(tmp_path / "h"), *FAST, "--holdout", "2", "--basis-ridge", "0.01",
+                    "--flattened-starts"], capsys)
+    assert code == 0 and seen["holdout"] == 2
+    assert seen["basis_ridge"] == 0.01 and seen["calibration_starts"] == ("lambertian", "independent", "flattened")

@@ -621,7 +621,7 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         if args.holdout > 0:
             t = time.perf_counter()
             ho = ps.holdout_evaluation(imgs, lights, inten, mask, holdout=args.holdout, seed=args.seed,
-                                       order=order, materials=materials)
+                                       order=order, materials=materials, **kw)  # the same solver options
             metrics["holdout"] = {
                 "held_out_lights": ho.test_indices.tolist(), "relative_rmse": ho.relative_rmse, "rmse": ho.rmse,
                 "lambertian_relative_rmse": ho.lambertian_relative_rmse, "runtime_s": time.perf_counter() - t,

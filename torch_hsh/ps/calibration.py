@@ -180,7 +180,8 @@ def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y,
             yS.to(work_dtype), w0S.to(work_dtype), nS0.to(work_dtype), lights.to(work_dtype), order,
             W0.to(work_dtype), rounds, _CAL_IRLS, _CAL_LM_ITERS, c, basis_ridge,
         )
-        cands.append((B_k.to(dt), scale_k, k_s, n_k.to(dt)))
+        # unit rows in the output dtype, so that passing them back as `basis=` (which renormalises) changes nothing
+        cands.append((_unit_rows(B_k.to(dt)), scale_k, k_s, n_k.to(dt)))
     sig = min(t[1] for t in cands)
     yT = yS.transpose(1, 2)
     losses = []
