@@ -3,6 +3,7 @@
 Usage:
     python benchmarks/bench_demo.py                      # 128 x 128, 96 lights, seed 0, 2 threads
     python benchmarks/bench_demo.py --seed 1 --min-nz 0.3
+    python benchmarks/bench_demo.py --solver-seed 3 --basis-ridge 1e-3   # another calibration subset, the old ridge
 
 Prints, for Lambertian LS, trimmed Lambertian (``ps.robust_lambertian``) and the
 HSH solver (``ps.solve_hsh``, default settings): the mean and median angular error
@@ -14,7 +15,8 @@ HSH mean error < 2.5 deg, < 1/4 of Lambertian LS, wall time < 60 s on 2 quiet th
 ``--min-nz`` leaves pixels whose true normal has ``n_z <= min_nz`` (the grazing
 rim) out of the mask given to every solver. ``--init-gt`` starts the HSH solver
 from the true normals (a diagnostic: the error that is left is the model's, not
-the optimisation's).
+the optimisation's). ``--solver-seed`` (the calibration subset, default 0) and
+``--basis-ridge`` (default: the solver's) are passed to ``ps.solve_hsh``.
 """
 from __future__ import annotations
 
@@ -32,6 +34,8 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--min-nz", type=float, default=0.0, help="leave out pixels with true n_z <= this (default 0)")
     ap.add_argument("--init-gt", action="store_true", help="start HSH from the true normals (diagnostic)")
+    ap.add_argument("--solver-seed", type=int, default=0, help="seed of the HSH calibration subset (default 0)")
+    ap.add_argument("--basis-ridge", type=float, default=None, help="relative ridge on the basis BRDFs (default: the solver's)")
     args = ap.parse_args(argv)
     if args.threads < 1:
         ap.error("--threads must be >= 1")
@@ -48,8 +52,11 @@ def main(argv=None):
     runs = (
         ("Lambertian LS", lambda: ps.lambertian_ls(s["images"], s["lights"], s["intensities"], mask)),
         ("robust Lambertian (25%/10%)", lambda: ps.robust_lambertian(s["images"], s["lights"], s["intensities"], mask)),
-        ("HSH (default)" + (", started at truth" if init is not None else ""),
-         lambda: ps.solve_hsh(s["images"], s["lights"], s["intensities"], mask, init=init)),
+        ("HSH (" + ("default" if args.solver_seed == 0 and args.basis_ridge is None else
+                    f"seed {args.solver_seed}" + ("" if args.basis_ridge is None else f", ridge {args.basis_ridge:g}"))
+         + ")" + (", started at truth" if init is not None else ""),
+         lambda: ps.solve_hsh(s["images"], s["lights"], s["intensities"], mask, init=init, seed=args.solver_seed,
+                              **({} if args.basis_ridge is None else {"basis_ridge": args.basis_ridge}))),
     )
     rows = []
     for name, fn in runs:

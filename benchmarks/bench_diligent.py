@@ -6,7 +6,7 @@ Usage:
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat --baseline   # + the 6d85856 solver
     python benchmarks/bench_diligent.py ../shared/data/diligent_harvest --cast-shadows 1  # + the shadow loop
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat --flattened-starts     # + the opt-in starts
-    python benchmarks/bench_diligent.py ../shared/data/diligent_cat --seeds 0 1 2 3 4 --basis-ridge 3e-3 1e-2
+    python benchmarks/bench_diligent.py ../shared/data/diligent_cat --seeds 0 1 2 3 4 --basis-ridge 1e-3 1e-2
 
 Arguments are object folders (``light_directions.txt``, images, ``mask.png``,
 ``Normal_gt.mat``) or the root of a DiLiGenT download (every ``*PNG`` folder

@@ -58,6 +58,8 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--baseline", action="store_true", help="also time commit 6d85856 (+ linspace fix)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--basis-ridge", type=float, default=None,
+                    help="relative ridge on the basis BRDFs of the working tree's solver (default: the solver's)")
     args = ap.parse_args(argv)
     if not (args.data or args.synthetic_size or args.stack):
         ap.error("give --data DIR, --synthetic-size N and/or --stack S")
@@ -80,6 +82,8 @@ def main(argv=None):
             for s in args.seeds:
                 for label, tree in trees:
                     mat = common if tree is ROOT else [a if a != "auto" else "default" for a in common]
+                    if tree is ROOT and args.basis_ridge is not None:
+                        mat = [*mat, "--basis-ridge", args.basis_ridge]
                     runs[label].append(run_worker([*pargs, "--methods", "hsh", "--seed", s, *mat], tree))
         res = {label: _summary(label, r) for label, r in runs.items()}
         if args.baseline:

@@ -495,8 +495,8 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
                         "see docs/photometric_stereo.md)")
     p.add_argument("--basis-ridge", type=_basis_ridge_arg, default=None,
                    help="relative ridge on the shared basis BRDFs (default torch_hsh.ps.DEFAULT_BASIS_RIDGE, 3e-3); "
-                        "larger values trade accuracy on sharp specular lobes for results that depend less on the "
-                        "calibration seed (see docs/photometric_stereo.md)")
+                        "1e-3 fits sharp specular lobes better but lets the result depend on the calibration seed "
+                        "(see docs/photometric_stereo.md)")
     p.add_argument("--depth", action="store_true",
                    help="integrate the normals: write depth.npy and depth.exr (pixel units, orthographic) and surface.png")
     p.add_argument("--mesh", nargs="?", const="ply", choices=("ply", "obj"), default=None,

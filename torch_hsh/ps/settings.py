@@ -63,7 +63,7 @@ class Settings:
     progress: bool
     cauchy_c: float = CAUCHY_C
     refinement_passes: int = 2
-    #: Relative ridge on the shared basis BRDFs (see :data:`BASIS_RIDGE`).
+    #: Relative ridge on the shared basis BRDFs (see :data:`DEFAULT_BASIS_RIDGE`).
     basis_ridge: float = DEFAULT_BASIS_RIDGE
     #: True when ``chunk_size`` was chosen by :func:`resolve_chunk` (it may then shrink on out-of-memory).
     chunk_auto: bool = False
