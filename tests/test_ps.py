@@ -311,13 +311,18 @@ def test_safe_cholesky_jitters_only_the_failing_matrices():
     assert torch.allclose(L[2] @ L[2].T, bad[2], atol=1e-6)
 
 
-def test_flattened_calibration_starts_add_two_candidates():
-    from torch_hsh.ps.calibration import FLATTEN_FACTORS
-
+def _quick_specular_problem():
+    """40 pixels of a white-lobed Blinn-Phong material, 16 lights, and solver options for a quick calibration."""
     n, l = _scene(40, 16, 11)
     img = render(n, l, BlinnPhong(torch.full((40, 3), 0.5, dtype=DT), torch.full((40, 1), 0.3, dtype=DT),
                                   torch.full((40, 1), 20.0, dtype=DT)), read_std=1e-3, seed=0)
-    kw = dict(calibration_rounds=2, max_iter=2, refinement_passes=1, search_angles=())
+    return img, l, dict(calibration_rounds=2, max_iter=2, refinement_passes=1, search_angles=())
+
+
+def test_flattened_calibration_starts_add_two_candidates():
+    from torch_hsh.ps.calibration import FLATTEN_FACTORS
+
+    img, l, kw = _quick_specular_problem()
     base = ps.solve_hsh(img, l, **kw)
     flat = ps.solve_hsh(img, l, calibration_starts=("lambertian", "independent", "flattened"), **kw)
     lb, lf = base.info["calibration_losses"], flat.info["calibration_losses"]
@@ -332,10 +337,7 @@ def test_flattened_calibration_starts_add_two_candidates():
 def test_basis_ridge_smooths_the_basis_brdfs_and_is_validated():
     from torch_hsh.ps.design import ridge_profile
 
-    n, l = _scene(40, 16, 11)
-    img = render(n, l, BlinnPhong(torch.full((40, 3), 0.5, dtype=DT), torch.full((40, 1), 0.3, dtype=DT),
-                                  torch.full((40, 1), 20.0, dtype=DT)), read_std=1e-3, seed=0)
-    kw = dict(calibration_rounds=2, max_iter=2, refinement_passes=1, search_angles=())
+    img, l, kw = _quick_specular_problem()
     base = ps.solve_hsh(img, l, **kw)
     same = ps.solve_hsh(img, l, basis_ridge=ps.DEFAULT_BASIS_RIDGE, **kw)
     assert torch.equal(base.normals, same.normals) and torch.equal(base.basis_brdfs, same.basis_brdfs)
