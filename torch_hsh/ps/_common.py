@@ -26,7 +26,6 @@ def row_sum(x: torch.Tensor, dtype: Optional[torch.dtype] = None, chunk: int = R
     return torch.cat(parts)
 
 
-
 #: Smallest chunk that :func:`for_chunks` halves down to after running out of device memory.
 MIN_CHUNK = 256
 

@@ -72,7 +72,7 @@ from typing import List, Tuple
 
 import torch
 
-from .calibration import _CAL_LM_ITERS, _calibrate, _fit_basis_brdfs, _initial_mixing
+from .calibration import _CAL_LM_ITERS, _calibrate, _calibration_subset, _fit_basis_brdfs, _initial_mixing
 from .design import _design_factors
 from .lambertian import _solve_flat, trimmed_weights
 from .observations import Observations
@@ -207,15 +207,9 @@ def select_materials(obs: Observations, n_start: torch.Tensor, cfg: Settings,
     if L < _MIN_LIGHTS:
         raise ValueError(f"`materials='auto'` needs at least {_MIN_LIGHTS} lights to hold some out, got {L}; "
                          "pass an integer `materials`")
-    dev = d.y.device
     wdt = d.dtype if cfg.work_dtype is None else cfg.work_dtype
     # the same seeded permutation as the calibration subset: its first pixels
-    usable = (w0.sum(-1) >= 3).nonzero().squeeze(1)
-    if usable.numel() == 0:
-        usable = torch.arange(d.y.shape[0], device=dev)
-    g = torch.Generator().manual_seed(int(cfg.seed))
-    n_sel = min(cfg.calibration_pixels, _SELECT_PIXELS)
-    S = usable[torch.randperm(usable.numel(), generator=g)[:n_sel].to(dev)]
+    S = _calibration_subset(w0, min(cfg.calibration_pixels, _SELECT_PIXELS), cfg.seed)
     yS, w0S = d.y[S].to(wdt), w0[S].to(wdt)
     lights = d.lights.to(wdt)
     nS = n_start[S].to(wdt)

@@ -403,7 +403,7 @@ def observe(
     info["noise_background_pixels"] = float(d.background.shape[0] // max(L, 1))
     info["saturated_fraction"] = n_sat / max(P * L, 1)
     info["dark_fraction"] = n_dark / max(P * L, 1)
-    info["invalid_fraction"] = int(row_sum(~d.valid).sum()) / max(P * L, 1)
+    info["invalid_fraction"] = (P * L - int(row_sum(d.valid).sum())) / max(P * L, 1)  # no (P, L) negation
     info["underdetermined_pixels"] = int((w0.sum(-1) < 3).sum())
     # global scale: a power of two near the median valid observation (exact division)
     # (sampled chunk by chunk: a full (P, L) channel mean would be the largest temporary of the solve)

@@ -248,11 +248,7 @@ class PixelProblem:
         rhs = Pw.transpose(1, 2) @ y  # (p, K, C)
         if rhs_extra is not None:
             rhs = rhs + rhs_extra
-        return torch.cholesky_solve(rhs, self._chol(G))  # (p, K, C)
-
-    @staticmethod
-    def _chol(G):
-        return safe_cholesky(G)
+        return torch.cholesky_solve(rhs, safe_cholesky(G))  # (p, K, C)
 
     def residual(self, n, idx=None):
         """Stacked residual ``[sqrt(w)(y - Phi a); sqrt(ridge) a]`` of shape (p, M), and ``a``."""
@@ -294,7 +290,7 @@ class PixelProblem:
         y, w, sw, rd = self.y[idx], self.w[idx], self.sw[idx], self.ridge_diag[idx]
         Pw = Phi * w.unsqueeze(-1)
         G = Pw.transpose(1, 2) @ Phi + torch.diag_embed(rd)
-        Lc = self._chol(G)
+        Lc = safe_cholesky(G)
         a = torch.cholesky_solve(Pw.transpose(1, 2) @ y, Lc)  # (q, K, C)
         e = y - Phi @ a  # (q, L, C)
         dPa = dPhi @ a.unsqueeze(1)  # (q, 2, L, C)
