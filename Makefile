@@ -18,7 +18,7 @@ DOCTEST_DESELECT ?=
 $(STAMP): pyproject.toml setup.py
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e ".[test,examples]"
+	$(PY) -m pip install -q -e ".[test,examples,fast,bench]"
 	touch $(STAMP)
 
 env: $(STAMP)

@@ -29,6 +29,15 @@ from torch_hsh.frames import to_local
 F64 = torch.float64
 
 
+@pytest.fixture(autouse=True, params=["auto", "torch"])
+def backend(request):
+    """Every test here runs on both kernel paths: "auto" (sphericart for the HSH where it is
+    installed, the fused C kernels for the isotropic basis) and "torch" (the pure-torch fallback)."""
+    torch_hsh.set_backend(request.param)
+    yield request.param
+    torch_hsh.set_backend("auto")
+
+
 # --------------------------------------------------------------------------
 # Independent reference (scipy.special.lpmv), straight from the math notes
 # --------------------------------------------------------------------------

@@ -4,6 +4,9 @@ __version__ = "0.1.0"
 from ._checks import MAX_ANISOTROPIC_ORDER, MAX_ORDER, set_validation
 from .basis import (
     anisotropic_indices,
+    backend_status,
+    get_backend,
+    set_backend,
     helmholtz_anisotropic,
     helmholtz_isotropic,
     helmholtz_isotropic_cosines,

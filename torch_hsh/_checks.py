@@ -93,7 +93,9 @@ def check_tensor(
     if last_dim is not None and (x.dim() == 0 or x.shape[-1] != last_dim):
         raise ValueError(f"`{name}` must have shape (..., {last_dim}), got {tuple(x.shape)}")
     if not allow_nonfinite and x.device.type != "meta" and validation_enabled() and x.numel() > 0:
-        if not bool(torch.isfinite(x).all()):
+        # One reduction first: a finite sum proves every entry finite (NaN and Inf propagate);
+        # only a non-finite sum (or an overflowing one) pays for the elementwise scan.
+        if not bool(torch.isfinite(x.detach().sum())) and not bool(torch.isfinite(x).all()):
             bad = "NaN" if bool(torch.isnan(x).any()) else "Inf"
             raise ValueError(f"`{name}` contains {bad} values; expected finite numbers")
     return x

@@ -49,11 +49,13 @@ the bases are supported on the upper hemisphere only, as a BRDF is.
 from __future__ import annotations
 
 import math
+import os
 from functools import lru_cache
 from typing import Dict, Optional, Tuple
 
 import torch
 
+from . import _native
 from ._checks import (
     MAX_ANISOTROPIC_ORDER,
     broadcast_shapes,
@@ -75,6 +77,9 @@ __all__ = [
     "num_hsh",
     "num_isotropic",
     "num_anisotropic",
+    "set_backend",
+    "get_backend",
+    "backend_status",
 ]
 
 
@@ -257,7 +262,10 @@ def _const(key: tuple, values, device: torch.device, dtype: Optional[torch.dtype
     t = _DEVICE_CACHE.get(full)
     if t is None:
         t = torch.tensor(values, dtype=dtype if dtype is not None else torch.long, device=device)
-        _DEVICE_CACHE[full] = t
+        # A tensor made inside a torch.func transform or a torch.compile trace is a wrapper
+        # without storage: it must not outlive that call, so only plain tensors are cached.
+        if not (_functorch_active() or _compiling()):
+            _DEVICE_CACHE[full] = t
     return t
 
 
@@ -425,6 +433,11 @@ def _iso_dirs(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
 
 
 def _iso_cosines_flat(zi: torch.Tensor, zo: torch.Tensor, cd: torch.Tensor, order: int) -> torch.Tensor:
+    return _iso_kernel_t(*_iso_cosines_geom(zi, zo, cd), order)
+
+
+def _iso_cosines_geom(zi: torch.Tensor, zo: torch.Tensor, cd: torch.Tensor):
+    """(zi, zo, a, rho, sio, valid) of the isotropic triple (flat (N,) inputs)."""
     valid = (zi >= 0) & (zo >= 0) & (zi <= 1) & (zo <= 1)
     zi_c = zi.clamp(0.0, 1.0)
     zo_c = zo.clamp(0.0, 1.0)
@@ -433,10 +446,15 @@ def _iso_cosines_flat(zi: torch.Tensor, zo: torch.Tensor, cd: torch.Tensor, orde
     sin_prod = torch.where(rho > eps, torch.sqrt(rho.clamp(min=eps)), torch.sqrt(rho.detach()))
     a = sin_prod * cd.clamp(-1.0, 1.0)
     sio = _safe_s(zi_c) * _safe_s(zo_c)
-    return _iso_kernel_t(zi_c, zo_c, a, rho, sio, valid, order)
+    return zi_c, zo_c, a, rho, sio, valid
 
 
 def _iso_world_flat(wi: torch.Tensor, wo: torch.Tensor, nrm: torch.Tensor, order: int) -> torch.Tensor:
+    return _iso_kernel_t(*_iso_world_geom(wi, wo, nrm), order)
+
+
+def _iso_world_geom(wi: torch.Tensor, wo: torch.Tensor, nrm: torch.Tensor):
+    """(zi, zo, a, rho, sio, valid) of world-space directions and normals (flat (N, 3) inputs)."""
     wi = _normalize3(wi)
     wo = _normalize3(wo)
     nrm = _normalize3(nrm)
@@ -448,7 +466,7 @@ def _iso_world_flat(wi: torch.Tensor, wo: torch.Tensor, nrm: torch.Tensor, order
     a = (wi * wo).sum(-1) - zi * zo
     rho = (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c)
     sio = _safe_s(zi_c) * _safe_s(zo_c)
-    return _iso_kernel_t(zi_c, zo_c, a, rho, sio, valid, order)
+    return zi_c, zo_c, a, rho, sio, valid
 
 
 def _aniso_flat(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
@@ -551,6 +569,370 @@ def _check_group(named, dirs: bool = True) -> None:
 
 
 # --------------------------------------------------------------------------
+# Fast paths: sphericart for the HSH, fused C kernels for the isotropic basis
+# --------------------------------------------------------------------------
+#: ``"auto"``: sphericart-torch for :func:`hsh` where it is installed, and the fused C
+#: kernels (:mod:`torch_hsh._native`) for the isotropic basis on the CPU where a C compiler
+#: is found; ``"torch"``: the pure-torch recurrences above everywhere.
+_BACKEND = {"name": os.environ.get("TORCH_HSH_BACKEND", "auto").strip().lower() or "auto"}
+_BACKENDS = ("auto", "torch")
+_SPHERICART: Dict[str, object] = {}
+
+
+def set_backend(name: str) -> None:
+    """Choose the kernels behind :func:`hsh` and the Helmholtz bases.
+
+    Args:
+        name: ``"auto"`` (default; also the environment variable ``TORCH_HSH_BACKEND``):
+            :func:`hsh` through sphericart-torch's spherical-harmonics kernel where that
+            package is installed (``pip install torch-hsh[fast]``), and the isotropic basis
+            through fused C kernels on the CPU where a C compiler is found (compiled once,
+            cached; ``TORCH_HSH_NATIVE=0`` switches them off). Everything else, and every
+            call inside ``torch.func`` transforms or ``torch.compile``, runs the pure-torch
+            kernels. ``"torch"``: the pure-torch kernels everywhere.
+
+    The paths agree to rounding (float64 to 1e-12); :func:`backend_status` says which
+    one runs.
+
+    Example:
+        >>> import torch_hsh
+        >>> torch_hsh.set_backend("torch")
+        >>> torch_hsh.get_backend()
+        'torch'
+        >>> torch_hsh.set_backend("auto")
+    """
+    if not isinstance(name, str) or name.strip().lower() not in _BACKENDS:
+        raise ValueError(f"`name` must be one of {_BACKENDS}, got {name!r}")
+    _BACKEND["name"] = name.strip().lower()
+
+
+def get_backend() -> str:
+    """The backend chosen with :func:`set_backend` (``"auto"`` or ``"torch"``)."""
+    return _BACKEND["name"]
+
+
+def _sphericart_module():
+    """``sphericart.torch`` or None (the import is tried once)."""
+    if "mod" not in _SPHERICART:
+        try:
+            import sphericart.torch as sct  # type: ignore[import-not-found]
+
+            _SPHERICART["mod"], _SPHERICART["error"] = sct, None
+        except Exception as exc:  # not installed, or built for another torch
+            _SPHERICART["mod"], _SPHERICART["error"] = None, f"{type(exc).__name__}: {exc}"
+    return _SPHERICART["mod"]
+
+
+def backend_status() -> Dict[str, Optional[str]]:
+    """Which kernels run under the current backend, and why a fast path is off.
+
+    Returns:
+        dict with ``backend``, ``hsh`` (``"sphericart"`` or ``"torch"``), ``isotropic_cpu``
+        (``"native"`` or ``"torch"``), ``sphericart_error`` and ``native_error``.
+
+    Example:
+        >>> import torch_hsh
+        >>> sorted(torch_hsh.backend_status())
+        ['backend', 'hsh', 'isotropic_cpu', 'native_error', 'sphericart_error']
+    """
+    auto = _BACKEND["name"] == "auto"
+    sct = _sphericart_module() if auto else None
+    lib = _native.library() if auto else None
+    return {
+        "backend": _BACKEND["name"],
+        "hsh": "sphericart" if sct is not None else "torch",
+        "isotropic_cpu": "native" if lib is not None else "torch",
+        "sphericart_error": _SPHERICART.get("error") if auto else None,  # type: ignore[dict-item]
+        "native_error": _native.native_status()["error"] if auto else None,
+    }
+
+
+def _compiling() -> bool:
+    try:
+        return bool(torch.compiler.is_compiling())
+    except AttributeError:  # pragma: no cover - old torch
+        return False
+
+
+def _native_ok(t: torch.Tensor) -> bool:
+    """The fused C kernels apply: CPU float tensors outside functorch / compile."""
+    return (
+        _BACKEND["name"] == "auto"
+        and t.device.type == "cpu"
+        and t.dtype in (torch.float32, torch.float64)
+        and not _functorch_active()
+        and not _compiling()
+        and _native.library() is not None
+    )
+
+
+def _suffix(dt: torch.dtype) -> str:
+    return "f32" if dt == torch.float32 else "f64"
+
+
+@lru_cache(maxsize=None)
+def _native_iso_spec(order: int):
+    """Recurrence and output tables of ``kernels.c``'s iso_core (see its header comment)."""
+    diag, alpha, beta, col = _polar_consts(order)
+    L = len(col)
+    A, B, c1, c2 = [0.0] * L, [0.0] * L, [-1] * L, [-1] * L
+    for (n, m), c in col.items():
+        j = n - m
+        if j == 0:
+            A[c] = diag[m]
+            continue
+        A[c], c1[c] = alpha[j - 1][m], col[(n - 1, m)]
+        if j >= 2:
+            B[c], c2[c] = beta[j - 1][m], col[(n - 2, m)]
+    ka, kb, kq, kc = [], [], [], []
+    for p, r, q in _iso_list(order):
+        ka.append(col[(p, q)])
+        kb.append(col[(r, q)])
+        kq.append(q)
+        kc.append((1.0 if q == 0 else math.sqrt(2.0)) * (0.5 if p == r else 1.0 / math.sqrt(2.0)))
+    return L, A, B, c1, c2, ka, kb, kq, kc
+
+
+def _native_iso_tables(order: int, dt: torch.dtype):
+    L, A, B, c1, c2, ka, kb, kq, kc = _native_iso_spec(order)
+    cpu = torch.device("cpu")
+    i32 = torch.int32
+    return (
+        L,
+        _const(("nat_A", order), A, cpu, dt),
+        _const(("nat_B", order), B, cpu, dt),
+        _const(("nat_c1", order), c1, cpu, i32),
+        _const(("nat_c2", order), c2, cpu, i32),
+        len(ka),
+        _const(("nat_ka", order), ka, cpu, i32),
+        _const(("nat_kb", order), kb, cpu, i32),
+        _const(("nat_kq", order), kq, cpu, i32),
+        _const(("nat_kc", order), kc, cpu, dt),
+    )
+
+
+def _iso_core_args(order: int, dt: torch.dtype):
+    L, A, B, c1, c2, K, ka, kb, kq, kc = _native_iso_tables(order, dt)
+    p = _native.ptr
+    return K, (L, p(A), p(B), p(c1), p(c2), order, K, p(ka), p(kb), p(kq), p(kc))
+
+
+class _IsoCore(torch.autograd.Function):
+    """``kernels.c`` iso_core: (zi, zo, a, rho, sio, valid) -> (N, K); see :func:`_iso_kernel_t`."""
+
+    @staticmethod
+    def forward(ctx, zi, zo, a, rho, sio, valid, order):
+        ins = [x.contiguous() for x in (zi, zo, a, rho, sio)]
+        v = valid.to(torch.uint8).contiguous()
+        K, tab = _iso_core_args(order, zi.dtype)
+        out = zi.new_empty((zi.shape[0], K))
+        fn = getattr(_native.library(), "iso_core_fwd_" + _suffix(zi.dtype))
+        _native.parallel_rows(fn, zi.shape[0], *[_native.ptr(x) for x in ins], _native.ptr(v), *tab, _native.ptr(out))
+        ctx.order = order
+        ctx.save_for_backward(zi, zo, a, rho, sio, valid)
+        return out
+
+    @staticmethod
+    def backward(ctx, gout):
+        saved = ctx.saved_tensors
+        xs, valid = saved[:5], saved[5]
+        need = [i for i in range(5) if ctx.needs_input_grad[i]]
+        grads = [None] * 7
+        if not need:
+            return tuple(grads)
+        if torch.is_grad_enabled():  # create_graph: a differentiable backward through the torch kernel
+            y = _iso_kernel_t(*xs, valid, ctx.order).t()
+            gs = torch.autograd.grad(y, [xs[i] for i in need], gout, create_graph=True, allow_unused=True)
+            for i, g in zip(need, gs):
+                grads[i] = torch.zeros_like(xs[i]) if g is None else g
+            return tuple(grads)
+        ins = [x.contiguous() for x in xs]
+        v = valid.to(torch.uint8).contiguous()
+        g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
+        outs = [torch.empty_like(x) for x in ins]
+        _, tab = _iso_core_args(ctx.order, g.dtype)
+        fn = getattr(_native.library(), "iso_core_bwd_" + _suffix(g.dtype))
+        _native.parallel_rows(fn, g.shape[0], *[_native.ptr(x) for x in ins], _native.ptr(v), *tab,
+                              _native.ptr(g), g.stride(0), g.stride(1), *[_native.ptr(o) for o in outs])
+        for i in need:
+            grads[i] = outs[i]
+        return tuple(grads)
+
+
+def _iso_geom_torch(wi: torch.Tensor, wo: torch.Tensor):
+    """(zi, zo, a, rho, sio, valid) of flat local direction pairs (pure torch, as :func:`_iso_dirs`)."""
+    xi, yi, zi, vi = _unit(wi)
+    xo, yo, zo, vo = _unit(wo)
+    a = xi * xo + yi * yo
+    rho = (xi * xi + yi * yi) * (xo * xo + yo * yo)
+    return zi, zo, a, rho, _safe_s(zi) * _safe_s(zo), vi & vo
+
+
+class _IsoDirs(torch.autograd.Function):
+    """``kernels.c`` iso_dirs: the isotropic basis of two flat (N, 3) direction sets, geometry fused."""
+
+    @staticmethod
+    def forward(ctx, wi, wo, order):
+        wi_c, wo_c = wi.contiguous(), wo.contiguous()
+        n, dt = wi.shape[0], wi.dtype
+        K, tab = _iso_core_args(order, dt)
+        out = wi.new_empty((n, K))
+        fn = getattr(_native.library(), "iso_dirs_fwd_" + _suffix(dt))
+        _native.parallel_rows(fn, n, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
+                              _horizon_eps(dt), *tab, _native.ptr(out))
+        ctx.order = order
+        ctx.save_for_backward(wi, wo)
+        return out
+
+    @staticmethod
+    def backward(ctx, gout):
+        wi, wo = ctx.saved_tensors
+        if not (ctx.needs_input_grad[0] or ctx.needs_input_grad[1]):
+            return None, None, None
+        if torch.is_grad_enabled():  # create_graph: a differentiable backward through the torch kernel
+            y = _iso_kernel_t(*_iso_geom_torch(wi, wo), ctx.order).t()
+            need = [w for w, nd in zip((wi, wo), ctx.needs_input_grad[:2]) if nd]
+            gs = iter(torch.autograd.grad(y, need, gout, create_graph=True, allow_unused=True))
+            out = [None, None, None]
+            for i, w in enumerate((wi, wo)):
+                if ctx.needs_input_grad[i]:
+                    g = next(gs)
+                    out[i] = torch.zeros_like(w) if g is None else g
+            return tuple(out)
+        n, dt = wi.shape[0], wi.dtype
+        gwi = torch.empty((n, 3), dtype=dt)
+        gwo = torch.empty((n, 3), dtype=dt)
+        _, tab = _iso_core_args(ctx.order, dt)
+        wi_c, wo_c = wi.contiguous(), wo.contiguous()  # kept alive across the call
+        g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
+        fn = getattr(_native.library(), "iso_dirs_bwd_" + _suffix(dt))
+        _native.parallel_rows(fn, n, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
+                              _horizon_eps(dt), *tab, _native.ptr(g), g.stride(0), g.stride(1),
+                              _native.ptr(gwi), _native.ptr(gwo))
+        return gwi, gwo, None
+
+
+def _remap_torch(d: torch.Tensor):
+    """d -> (2 s x, 2 s y, 2 z - 1) of the unit direction, and the validity flag (pure torch)."""
+    x, y, z, valid = _unit(d)
+    s = 2.0 * _safe_s(z)
+    return torch.stack([s * x, s * y, 2.0 * z.clamp(min=0.0) - 1.0], dim=-1), valid
+
+
+class _Remap(torch.autograd.Function):
+    """``kernels.c`` hsh_remap: the map that turns real spherical harmonics into HSH."""
+
+    @staticmethod
+    def forward(ctx, d):
+        dc = d.contiguous()
+        n, dt = d.shape[0], d.dtype
+        dp = torch.empty_like(dc)
+        valid = torch.empty(n, dtype=torch.uint8)
+        fn = getattr(_native.library(), "hsh_remap_fwd_" + _suffix(dt))
+        _native.parallel_rows(fn, n, _native.ptr(dc), torch.finfo(dt).tiny * 1e6, _horizon_eps(dt),
+                              _native.ptr(dp), _native.ptr(valid))
+        vb = valid.bool()
+        ctx.mark_non_differentiable(vb)
+        ctx.save_for_backward(d)
+        return dp, vb
+
+    @staticmethod
+    def backward(ctx, gdp, _gvalid):
+        (d,) = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph
+            (gd,) = torch.autograd.grad(_remap_torch(d)[0], [d], gdp, create_graph=True)
+            return gd
+        n, dt = d.shape[0], d.dtype
+        gd = torch.empty_like(d, memory_format=torch.contiguous_format)
+        dc, g = d.contiguous(), gdp.contiguous()  # kept alive across the call
+        fn = getattr(_native.library(), "hsh_remap_bwd_" + _suffix(dt))
+        _native.parallel_rows(fn, n, _native.ptr(dc), torch.finfo(dt).tiny * 1e6, _horizon_eps(dt),
+                              _native.ptr(g), _native.ptr(gd))
+        return gd
+
+
+class _PairProducts(torch.autograd.Function):
+    """``kernels.c`` pair: ``out[:, p] = c_p (A[:, j_p] B[:, k_p] + A[:, k_p] B[:, j_p])`` (anisotropic basis)."""
+
+    @staticmethod
+    def forward(ctx, A, B, order):
+        Ac, Bc = A.contiguous(), B.contiguous()
+        j, k, c = _aniso_gather(order)
+        cpu, dt = torch.device("cpu"), A.dtype
+        tabs = (_const(("nat_pj", order), j, cpu, torch.int32), _const(("nat_pk", order), k, cpu, torch.int32),
+                _const(("an_c", order), c, cpu, dt))
+        n, H, Q = A.shape[0], A.shape[1], len(j)
+        out = A.new_empty((n, Q))
+        fn = getattr(_native.library(), "pair_fwd_" + _suffix(dt))
+        _native.parallel_rows(fn, n, _native.ptr(Ac), _native.ptr(Bc), H, Q, *[_native.ptr(t) for t in tabs],
+                              _native.ptr(out))
+        ctx.order, ctx.tabs = order, tabs
+        ctx.save_for_backward(A, B)
+        return out
+
+    @staticmethod
+    def backward(ctx, gout):
+        A, B = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph: differentiable torch formula
+            j, k, c = (t.to(torch.long) if t.dtype == torch.int32 else t for t in ctx.tabs)
+            y = (A.index_select(1, j) * B.index_select(1, k) + A.index_select(1, k) * B.index_select(1, j)) * c
+            need = [t for t, nd in zip((A, B), ctx.needs_input_grad[:2]) if nd]
+            gs = iter(torch.autograd.grad(y, need, gout, create_graph=True))
+            return (next(gs) if ctx.needs_input_grad[0] else None, next(gs) if ctx.needs_input_grad[1] else None, None)
+        Ac, Bc = A.contiguous(), B.contiguous()
+        g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()
+        gA, gB = torch.empty_like(Ac), torch.empty_like(Bc)
+        fn = getattr(_native.library(), "pair_bwd_" + _suffix(A.dtype))
+        _native.parallel_rows(fn, A.shape[0], _native.ptr(Ac), _native.ptr(Bc), A.shape[1], g.shape[1],
+                              *[_native.ptr(t) for t in ctx.tabs], _native.ptr(g), g.stride(0), g.stride(1),
+                              _native.ptr(gA), _native.ptr(gB))
+        return gA, gB, None
+
+
+@lru_cache(maxsize=None)
+def _sph_scale(order: int) -> Tuple[float, ...]:
+    """sqrt(2) * sign_k: HSH_k(d) = sqrt(2) sign_k Y_k(d') for sphericart's real SH Y_k (same (l, m) order);
+    sign_k = -1 for m < 0 with odd |m| (the Condon-Shortley convention differs there)."""
+    r2 = math.sqrt(2.0)
+    return tuple(-r2 if (m < 0 and (-m) % 2 == 1) else r2 for n in range(order + 1) for m in range(-n, n + 1))
+
+
+_SPH_CALC: Dict[int, object] = {}
+
+
+def _hsh_fast_ok(d: torch.Tensor) -> bool:
+    return _BACKEND["name"] == "auto" and not _functorch_active() and _sphericart_module() is not None
+
+
+def _hsh_sphericart(d: torch.Tensor, order: int) -> torch.Tensor:
+    """HSH of flat (N, 3) directions through sphericart: ``sqrt(2) sign_k Y_k(d')``, ``(N, K)``."""
+    calc = _SPH_CALC.get(order)
+    if calc is None:
+        calc = _SPH_CALC[order] = _sphericart_module().SphericalHarmonics(order)  # type: ignore[attr-defined]
+    if _native_ok(d):
+        dp, valid = _Remap.apply(d)
+    else:
+        dp, valid = _remap_torch(d)
+    Y = calc(dp)  # type: ignore[operator]
+    scale = _const(("sph_scale", order), _sph_scale(order), d.device, d.dtype)
+    grad = Y.requires_grad
+    out = Y * scale if grad else Y.mul_(scale)
+    if _compiling() or (d.device.type != "cpu" and not grad):  # no host sync: mask the invalid rows
+        return out * valid.unsqueeze(-1).to(out.dtype)
+    # Rows that the pure-torch kernel evaluates instead (a host sync; free on the CPU, usually none):
+    # invalid rows (zero), and with autograd the rows within eps of the horizon. There d' sits at
+    # the pole of the sphere, where the derivative of the even-m functions reaches z only through
+    # s ds/dz, a finite product of which the safe form of s keeps no part.
+    fix = ~valid
+    if grad:
+        fix |= dp[:, 2].detach() <= 2.0 * _horizon_eps(d.dtype) - 1.0
+    rows = fix.nonzero().squeeze(-1)
+    if rows.numel():
+        out = out.index_copy(0, rows, _hsh_flat_t(d.index_select(0, rows), order).t())
+    return out
+
+
+# --------------------------------------------------------------------------
 # Public functions
 # --------------------------------------------------------------------------
 def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
@@ -577,7 +959,11 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
     order = check_order(order)
     lead = dirs.shape[:-1]
     K = (order + 1) ** 2
-    out = _run_rows(lambda d: _hsh_flat_t(d, order), K, dirs.reshape(-1, 3))
+    flat = dirs.reshape(-1, 3)
+    if _hsh_fast_ok(flat):
+        out = _hsh_sphericart(flat, order)
+    else:
+        out = _run_rows(lambda d: _hsh_flat_t(d, order), K, flat)
     return out.reshape(*lead, K)
 
 
@@ -611,7 +997,14 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
     _check_group([("wi", wi), ("wo", wo)])
     order = check_order(order)
     K = (order + 1) * (order + 2) * (order + 3) // 6
-    if wi is wo:  # one direction set: the polar table is computed once
+    if _native_ok(wi):  # fused C kernels (geometry, then the basis)
+        if wi is wo:
+            lead, flat = wi.shape[:-1], wi.reshape(-1, 3)
+            out = _IsoDirs.apply(flat, flat, order)
+        else:
+            lead, a, b = _broadcast_pair(wi, wo)
+            out = _IsoDirs.apply(a, b, order)
+    elif wi is wo:  # one direction set: the polar table is computed once
         lead = wi.shape[:-1]
         out = _run_rows(lambda w: _iso_dirs(w, w, order), K, wi.reshape(-1, 3))
     else:
@@ -646,7 +1039,10 @@ def helmholtz_isotropic_cosines(
     lead = broadcast_shapes([("cos_i", cos_i.shape), ("cos_o", cos_o.shape), ("cos_dphi", cos_dphi.shape)])
     zi, zo, cd = (t.expand(lead).reshape(-1) for t in (cos_i, cos_o, cos_dphi))
     K = (order + 1) * (order + 2) * (order + 3) // 6
-    out = _run_rows(lambda a, b, c: _iso_cosines_flat(a, b, c, order), K, zi, zo, cd)
+    if _native_ok(zi):
+        out = _IsoCore.apply(*_iso_cosines_geom(zi, zo, cd), order)
+    else:
+        out = _run_rows(lambda a, b, c: _iso_cosines_flat(a, b, c, order), K, zi, zo, cd)
     return out.reshape(*lead, K)
 
 
@@ -677,7 +1073,15 @@ def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> tor
     order = check_order(order, max_order=MAX_ANISOTROPIC_ORDER)
     K = (order + 1) ** 2
     K = K * (K + 1) // 2
-    if wi is wo:
+    if _native_ok(wi):  # the HSH of both sets (fast path), then the fused pair products
+        if wi is wo:
+            lead, flat = wi.shape[:-1], wi.reshape(-1, 3)
+            Hi = Ho = hsh(flat, order)
+        else:
+            lead, a, b = _broadcast_pair(wi, wo)
+            Hi, Ho = hsh(a, order), hsh(b, order)
+        out = _PairProducts.apply(Hi, Ho, order)
+    elif wi is wo:
         lead = wi.shape[:-1]
         out = _run_rows(lambda w: _aniso_flat(w, w, order), K, wi.reshape(-1, 3))
     else:
@@ -719,7 +1123,10 @@ def helmholtz_isotropic_world(
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1]), ("normal", normal.shape[:-1])])
     wi, wo, nrm = (t.expand(*lead, 3).reshape(-1, 3) for t in (wi, wo, normal))
     K = (order + 1) * (order + 2) * (order + 3) // 6
-    out = _run_rows(lambda a, b, c: _iso_world_flat(a, b, c, order), K, wi, wo, nrm)
+    if _native_ok(wi):
+        out = _IsoCore.apply(*_iso_world_geom(wi, wo, nrm), order)
+    else:
+        out = _run_rows(lambda a, b, c: _iso_world_flat(a, b, c, order), K, wi, wo, nrm)
     return out.reshape(*lead, K)
 
 
