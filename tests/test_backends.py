@@ -1,0 +1,268 @@
+"""The kernel paths behind the bases agree: sphericart + fused C kernels ("auto") and pure torch.
+
+What is checked here (test_basis.py runs all its value/gradient tests on both paths as well):
+
+* values in float64 to 1e-12 and gradients to 1e-10 between the paths, on random directions and
+  on the special points (pole, horizon, just above the horizon, below it, zero vectors);
+* float32 no further from the float64 values than the pure-torch float32 kernel is;
+* the multi-threaded row split and high orders (heap scratch tables);
+* torch.func (vmap, jacrev), double backward and torch.compile (inductor) on both paths;
+* the fallbacks: without sphericart, and with the C kernels switched off (a subprocess with
+  ``TORCH_HSH_NATIVE=0``), with a status that says why.
+"""
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+import torch_hsh
+from torch_hsh import basis
+
+F64 = torch.float64
+HAS_SPHERICART = basis._sphericart_module() is not None
+HAS_NATIVE = torch_hsh.backend_status()["isotropic_cpu"] == "native"
+
+
+@pytest.fixture
+def restore_backend():
+    yield
+    torch_hsh.set_backend("auto")
+
+
+def _dirs(n, seed, dtype=F64, special=True):
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g, dtype=F64)
+    d[:, 2] = d[:, 2].abs()
+    if special:
+        d[:8] = torch.tensor([
+            [0.0, 0.0, 1.0],  # pole
+            [1.0, 0.0, 0.0],  # horizon
+            [0.6, -0.8, 1e-13],  # within eps of the horizon (float64)
+            [0.6, 0.8, 3e-6],  # just above the float32 eps
+            [0.0, 0.0, 0.0],  # zero vector
+            [0.3, 0.1, -0.5],  # below the horizon
+            [2.0, -1.0, 0.5],  # not normalised
+            [1e-9, 0.0, 1.0],  # near the pole
+        ], dtype=F64)
+    return d.to(dtype)
+
+
+def _both(fn, *args):
+    """(auto result, torch result) of fn(*args) with gradients of a weighted sum."""
+    outs = []
+    for be in ("auto", "torch"):
+        torch_hsh.set_backend(be)
+        xs = [a.detach().clone().requires_grad_(a.is_floating_point()) for a in args]
+        y = fn(*xs)
+        w = torch.linspace(-1.0, 2.0, y.shape[-1], dtype=y.dtype)
+        if y.requires_grad:
+            grads = torch.autograd.grad((y * w).sum(), [x for x in xs if x.requires_grad], allow_unused=True)
+        else:  # order 0: a constant
+            grads = (None,) * len(xs)
+        outs.append((y.detach(), [torch.zeros_like(x) if g is None else g for x, g in zip(xs, grads)]))
+    torch_hsh.set_backend("auto")
+    return outs
+
+
+CASES = {
+    "hsh": (lambda a, b, c, P: torch_hsh.hsh(a, P)),
+    "isotropic": (lambda a, b, c, P: torch_hsh.helmholtz_isotropic(a, b, P)),
+    "isotropic_same": (lambda a, b, c, P: torch_hsh.helmholtz_isotropic(a, a, P)),
+    "anisotropic": (lambda a, b, c, P: torch_hsh.helmholtz_anisotropic(a, b, min(P, 4))),
+    "cosines": (lambda a, b, c, P: torch_hsh.helmholtz_isotropic_cosines(a[:, 2].clamp(-0.2, 1.0), b[:, 2],
+                                                                         torch.cos(3.0 * c[:, 0]), P)),
+    "world": (lambda a, b, c, P: torch_hsh.helmholtz_isotropic_world(a, b, c, P)),
+}
+
+
+def test_status_and_bad_backend(restore_backend):
+    st = torch_hsh.backend_status()
+    assert st["backend"] == "auto"
+    assert st["hsh"] in ("sphericart", "torch") and st["isotropic_cpu"] in ("native", "torch")
+    assert (st["hsh"] == "sphericart") == HAS_SPHERICART
+    torch_hsh.set_backend("torch")
+    st = torch_hsh.backend_status()
+    assert (st["hsh"], st["isotropic_cpu"]) == ("torch", "torch")
+    with pytest.raises(ValueError, match="`name` must be one of"):
+        torch_hsh.set_backend("cuda")
+    with pytest.raises(ValueError, match="`name`"):
+        torch_hsh.set_backend(None)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.parametrize("order", [0, 1, 2, 5, 9])
+def test_paths_agree_float64_values_and_gradients(case, order):
+    a, b, c = _dirs(300, 1), _dirs(300, 2), _dirs(300, 3, special=False)
+    (ya, ga), (yt, gt) = _both(lambda x, y, z: CASES[case](x, y, z, order), a, b, c)
+    torch.testing.assert_close(ya, yt, rtol=0, atol=1e-12 * max(1.0, float(yt.abs().max())))
+    for g1, g2 in zip(ga, gt):
+        assert torch.isfinite(g1).all()
+        torch.testing.assert_close(g1, g2, rtol=0, atol=1e-10 * max(1.0, float(g2.abs().max())))
+
+
+@pytest.mark.parametrize("case", ["hsh", "isotropic", "isotropic_same", "anisotropic"])
+@pytest.mark.parametrize("order", [4, 8, 12])
+def test_float32_no_worse_than_the_torch_kernel(case, order, restore_backend):
+    if case == "anisotropic" and order > 4:
+        pytest.skip("anisotropic output grows as order**4")
+    a64, b64 = _dirs(2000, 4, special=False), _dirs(2000, 5, special=False)
+    ref = CASES[case](a64, b64, a64, order)
+    errs = {}
+    for be in ("auto", "torch"):
+        torch_hsh.set_backend(be)
+        y = CASES[case](a64.float(), b64.float(), a64.float(), order).double()
+        errs[be] = float((y - ref).abs().max() / ref.abs().max())
+    assert errs["auto"] <= 1.5 * errs["torch"] + 1e-7, errs
+
+
+def test_thread_split_matches_single_thread(restore_backend):
+    n = 40_000  # several row ranges of the thread pool
+    a, b = _dirs(n, 6), _dirs(n, 7)
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = [torch_hsh.helmholtz_isotropic(a, b, 4), torch_hsh.hsh(a, 6), torch_hsh.helmholtz_anisotropic(a, b, 2)]
+        torch.set_num_threads(4)
+        many = [torch_hsh.helmholtz_isotropic(a, b, 4), torch_hsh.hsh(a, 6), torch_hsh.helmholtz_anisotropic(a, b, 2)]
+        torch_hsh.set_backend("torch")
+        ref = [torch_hsh.helmholtz_isotropic(a, b, 4), torch_hsh.hsh(a, 6), torch_hsh.helmholtz_anisotropic(a, b, 2)]
+    finally:
+        torch.set_num_threads(old)
+    for x, y, r in zip(one, many, ref):
+        assert torch.equal(x, y)
+        torch.testing.assert_close(x, r, rtol=0, atol=1e-12)
+
+
+def test_high_order_and_empty_and_leading_shapes():
+    a, b = _dirs(50, 8), _dirs(50, 9)
+    (ya, ga), (yt, gt) = _both(lambda x, y: torch_hsh.helmholtz_isotropic(x, y, 30), a, b)
+    assert ya.shape == (50, 5456)
+    torch.testing.assert_close(ya, yt, rtol=0, atol=1e-10 * float(yt.abs().max()))
+    torch.testing.assert_close(ga[0], gt[0], rtol=0, atol=1e-8 * float(gt[0].abs().max()))
+    e = torch.empty(0, 3, dtype=F64)
+    assert torch_hsh.helmholtz_isotropic(e, e, 3).shape == (0, 20)
+    assert torch_hsh.hsh(e, 3).shape == (0, 16)
+    assert torch_hsh.helmholtz_anisotropic(e, e, 1).shape == (0, 10)
+    x = _dirs(24, 10).reshape(2, 3, 4, 3)
+    y = _dirs(4, 11, special=False)
+    out = torch_hsh.helmholtz_isotropic(x, y, 3)
+    assert out.shape == (2, 3, 4, 20) and out.is_contiguous()
+    torch.testing.assert_close(out.reshape(-1, 20)[:4], torch_hsh.helmholtz_isotropic(x.reshape(-1, 3)[:4], y, 3))
+
+
+def test_gradcheck_native_kernels_float64():
+    """The hand-written backward kernels against finite differences (auto path)."""
+    a = _dirs(6, 12, special=False).requires_grad_(True)
+    b = _dirs(6, 13, special=False).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x, y: torch_hsh.helmholtz_isotropic(x, y, 4), (a, b))
+    assert torch.autograd.gradcheck(lambda x: torch_hsh.helmholtz_isotropic(x, x, 3), (a,))
+    assert torch.autograd.gradcheck(lambda x, y: torch_hsh.helmholtz_anisotropic(x, y, 2), (a, b))
+    assert torch.autograd.gradcheck(lambda x: torch_hsh.hsh(x, 5), (a,))
+    zi = torch.rand(6, dtype=F64).requires_grad_(True)
+    cd = (torch.rand(6, dtype=F64) * 2 - 1).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda u, v: torch_hsh.helmholtz_isotropic_cosines(u, u.flip(0), v, 3), (zi, cd))
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_double_backward(backend, restore_backend):
+    torch_hsh.set_backend(backend)
+    a = _dirs(4, 14, special=False).requires_grad_(True)
+    b = _dirs(4, 15, special=False).requires_grad_(True)
+    assert torch.autograd.gradgradcheck(lambda x, y: torch_hsh.helmholtz_isotropic(x, y, 3), (a, b))
+    assert torch.autograd.gradgradcheck(lambda x: torch_hsh.hsh(x, 3), (a,))
+    assert torch.autograd.gradgradcheck(lambda x, y: torch_hsh.helmholtz_anisotropic(x, y, 1), (a, b))
+    # one input without grad: the create_graph fallback differentiates only what is asked
+    assert torch.autograd.gradgradcheck(lambda x: torch_hsh.helmholtz_isotropic(x, b.detach(), 2), (a,))
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+@pytest.mark.parametrize("name", ["hsh", "isotropic", "anisotropic"])
+def test_torch_func_transforms(backend, name, restore_backend):
+    torch_hsh.set_backend(backend)
+    fns = {
+        "hsh": lambda x, y: torch_hsh.hsh(x, 3),
+        "isotropic": lambda x, y: torch_hsh.helmholtz_isotropic(x, y, 3),
+        "anisotropic": lambda x, y: torch_hsh.helmholtz_anisotropic(x, y, 1),
+    }
+    f = fns[name]
+    a, b = _dirs(12, 16, special=False), _dirs(12, 17, special=False)
+    ref = f(a, b)
+    v = torch.func.vmap(f)(a.reshape(3, 4, 3), b.reshape(3, 4, 3))
+    torch.testing.assert_close(v.reshape(12, -1), ref)
+    J = torch.func.jacrev(f)(a, b)  # (12, K, 12, 3): block-diagonal over the rows
+    xa = a.clone().requires_grad_(True)
+    w = torch.zeros_like(ref)
+    w[5, 1] = 1.0
+    (g,) = torch.autograd.grad((f(xa, b) * w).sum(), xa)
+    torch.testing.assert_close(J[5, 1], g)
+    assert float(J[5, 1, 5].abs().sum()) > 0 and float(J[5, 1, 4].abs().sum()) == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_torch_compile_inductor(backend, restore_backend):
+    torch_hsh.set_backend(backend)
+    torch._dynamo.reset()
+    a, b = _dirs(16, 18, special=False), _dirs(16, 19, special=False)
+    for f in (lambda x, y: torch_hsh.hsh(x, 3), lambda x, y: torch_hsh.helmholtz_isotropic(x, y, 3),
+              lambda x, y: torch_hsh.helmholtz_anisotropic(x, y, 1)):
+        cf = torch.compile(f, backend="inductor")
+        torch.testing.assert_close(cf(a, b), f(a, b), rtol=1e-12, atol=1e-12)
+        xa = a.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(cf(xa, b).sum(), xa)
+        (gr,) = torch.autograd.grad(f(xa, b).sum(), xa)
+        torch.testing.assert_close(g, gr, rtol=1e-10, atol=1e-10)
+
+
+def test_without_sphericart_hsh_falls_back(monkeypatch):
+    monkeypatch.setitem(basis._SPHERICART, "mod", None)
+    monkeypatch.setitem(basis._SPHERICART, "error", "ImportError: simulated")
+    assert torch_hsh.backend_status()["hsh"] == "torch"
+    assert torch_hsh.backend_status()["sphericart_error"] == "ImportError: simulated"
+    d = _dirs(100, 20)
+    torch.testing.assert_close(torch_hsh.hsh(d, 4)[:, 0], torch.full((100,), 1 / math.sqrt(2 * math.pi), dtype=F64)
+                               * (torch.arange(100) != 4).double() * (torch.arange(100) != 5).double())
+
+
+def test_native_switched_off_in_a_subprocess(tmp_path):
+    code = (
+        "import torch, torch_hsh;"
+        "s = torch_hsh.backend_status(); print(s['isotropic_cpu'], '|', s['native_error']);"
+        "d = torch.tensor([[0.3, 0.1, 0.9]], dtype=torch.float64);"
+        "print(float(torch_hsh.helmholtz_isotropic(d, d, 2).sum()))"
+    )
+    env = dict(os.environ, TORCH_HSH_NATIVE="0", TORCH_HSH_CACHE=str(tmp_path))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    line, value = out.stdout.strip().splitlines()
+    assert line.startswith("torch |") and "TORCH_HSH_NATIVE=0" in line
+    d = torch.tensor([[0.3, 0.1, 0.9]], dtype=F64)
+    assert abs(float(value) - float(torch_hsh.helmholtz_isotropic(d, d, 2).sum())) < 1e-12
+    assert not list(tmp_path.iterdir())  # nothing compiled
+
+
+@pytest.mark.skipif(not HAS_NATIVE, reason="no C compiler: the fused kernels are not built here")
+def test_native_build_is_cached_and_atomic(tmp_path):
+    code = "import torch_hsh._native as n; print(n.native_status()['path'])"
+    env = dict(os.environ, TORCH_HSH_CACHE=str(tmp_path))
+    paths = []
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        paths.append(out.stdout.strip())
+    assert paths[0] == paths[1] and paths[0].startswith(str(tmp_path))
+    files = sorted(p.name for p in tmp_path.iterdir())
+    assert len(files) == 1 and files[0].endswith(".so")  # no temporary left behind
+
+
+def test_bad_compiler_is_reported(tmp_path):
+    code = "import torch_hsh; print(torch_hsh.backend_status()['native_error'])"
+    env = dict(os.environ, CC="/nonexistent/cc", TORCH_HSH_CACHE=str(tmp_path))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "no C compiler" in out.stdout
