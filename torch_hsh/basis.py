@@ -215,16 +215,18 @@ def _hsh_gather(order: int):
     return ridx, aidx, az_scale
 
 
-@lru_cache(maxsize=None)
-def _iso_gather(order: int):
-    P = order
-    _, _, _, col = _polar_consts(P)
+def iso_pair_gather(order: int, col: Dict[Tuple[int, int], int]):
+    """Gather table of the isotropic basis over a table of polar functions ``Theta_n^m``.
+
+    ``col`` maps ``(n, m)`` to a column of a table ``X`` (``L = len(col)`` columns, plus a
+    zero column ``L``) and of ``Y = [Theta G / sqrt2, Theta G]`` (``2L`` columns). Column
+    ``k = (p, r, q)`` of the basis is ``X[i1] * Y[j1] + X[i2] * Y[j2]``: the normalisation
+    ``1/sqrt(2 + 2 delta_pr)`` is folded into ``Y`` (``p == r``: one product, the second term
+    hits the zero column). Used by the kernels here and by :mod:`torch_hsh.envmap`.
+    """
     L = len(col)
-    # out = X[i1] * Y[j1] + X[i2] * Y[j2] with X = [R_i, 0] (L + 1 columns) and
-    # Y = [R_o G / sqrt2, R_o G] (2L columns): the normalisation 1/sqrt(2 + 2 delta_pr)
-    # is folded into the tables (p == r: single product, second term hits the zero column).
     i1, j1, i2, j2 = [], [], [], []
-    for p, r, q in _iso_list(P):
+    for p, r, q in _iso_list(order):
         a, b = col[(p, q)], col[(r, q)]
         if p == r:
             i1.append(a)
@@ -236,6 +238,15 @@ def _iso_gather(order: int):
             j1.append(b)
             i2.append(b)
             j2.append(a)
+    return i1, j1, i2, j2
+
+
+@lru_cache(maxsize=None)
+def _iso_gather(order: int):
+    P = order
+    _, _, _, col = _polar_consts(P)
+    L = len(col)
+    i1, j1, i2, j2 = iso_pair_gather(P, col)
     # m of every polar-table column (to attach the azimuthal factor G_q)
     qcol = [0] * L
     for (n, m), cc in col.items():
@@ -370,6 +381,23 @@ def _hsh_flat(d: torch.Tensor, order: int) -> torch.Tensor:
     return _hsh_flat_t(d, order).t().contiguous()
 
 
+def azimuthal_factors(w: torch.Tensor, a1: torch.Tensor, r1: torch.Tensor, order: int):
+    r"""The azimuthal factors of the isotropic basis, ``[G_0, ..., G_P]`` (without the sqrt 2 of q > 0).
+
+    :math:`G_q = w\,(s_i s_o)^q\,\mathrm{Re}(c^q)` with :math:`c = (x_i - i y_i)(x_o + i y_o)`, by the
+    Chebyshev-like recurrence :math:`G_{q+1} = 2 a_1 G_q - r_1 G_{q-1}`, where
+    ``a1 = s_i s_o Re(c)`` and ``r1 = (s_i s_o)^2 |c|^2``; ``w`` is a weight (the validity mask, or
+    the shading of photometric stereo). Polynomial in its inputs, so smooth at the poles. The one
+    implementation of this recurrence: the kernels here and :mod:`torch_hsh.ps.design` use it.
+    """
+    G = [w]
+    if order >= 1:
+        G.append(a1 * w)
+        for _ in range(2, order + 1):
+            G.append(2.0 * a1 * G[-1] - r1 * G[-2])
+    return G
+
+
 def _iso_kernel(zi, zo, a, rho, sio, valid, order: int, same: bool = False) -> torch.Tensor:
     """Isotropic Helmholtz basis from cos(theta_i), cos(theta_o), Re c, |c|^2 and s_i s_o.
 
@@ -385,14 +413,8 @@ def _iso_kernel_t(zi, zo, a, rho, sio, valid, order: int, same: bool = False) ->
     i1, j1, i2, j2, qcol, g_scale = _iso_gather(P)
     dev, dt = zi.device, zi.dtype
     mask = valid.to(dt)
-    # G_q = (s_i s_o)^q Re(c^q) (times sqrt 2 for q > 0), via V_{q+1} = 2 a' V_q - rho' V_{q-1}
-    G = [mask]
-    if P >= 1:
-        a1 = sio * a
-        r1 = sio * sio * rho
-        G.append(a1 * mask)
-        for _ in range(2, P + 1):
-            G.append(2.0 * a1 * G[-1] - r1 * G[-2])
+    # G_q = (s_i s_o)^q Re(c^q) (times sqrt 2 for q > 0)
+    G = azimuthal_factors(mask, sio * a, sio * sio * rho, P) if P >= 1 else [mask]
     Gt = torch.stack(G, dim=0) * _col(("gsc", P), g_scale, dev, dt)
     Ri = _polar_table_t(zi, P)
     Ro = (Ri if same else _polar_table_t(zo, P)) * Gt.index_select(0, _const(("qcol", P), qcol, dev, None))

@@ -84,7 +84,7 @@ import numpy as np
 import torch
 
 from ._checks import broadcast_shapes, check_dirs, check_order, check_same, check_tensor
-from .basis import _hsh_flat_t, _iso_list, hsh
+from .basis import hsh, iso_pair_gather
 from .bases.westin import _sh_gather, _sh_polar, complex_powers, real_sh
 from .render import brdf_cosine, order_from_num_coefficients
 
@@ -247,19 +247,7 @@ def _render_consts_host(N: int, P: int):
     # final gather of the isotropic basis: B_k uses E[i1] Th[j1] + E[i2] Th[j2]
     pq = {v: i for i, v in enumerate(_pq_list(P))}
     Lp = len(pq)
-    i1, j1, i2, j2 = [], [], [], []
-    for p, r, q in _iso_list(P):
-        a, b = pq[(p, q)], pq[(r, q)]
-        if p == r:
-            i1.append(a)
-            j1.append(Lp + a)
-            i2.append(Lp)
-            j2.append(0)
-        else:
-            i1.append(a)
-            j1.append(b)
-            i2.append(b)
-            j2.append(a)
+    i1, j1, i2, j2 = iso_pair_gather(P, pq)
     K = len(i1)
     S1 = torch.zeros(K, Lp + 1, dtype=torch.float64)
     S2 = torch.zeros(K, Lp + 1, dtype=torch.float64)
@@ -637,7 +625,7 @@ def _render_chunk(n: torch.Tensor, a: torch.Tensor, Q: torch.Tensor, c: dict, N:
     E = torch.bmm(trig_b.unsqueeze(1), U).reshape(B, C, Lp)  # lighting integrals E_pq
     # Theta_p^q(theta_o): HSH of the local view (sin, 0, cos) over Phi_q(0)
     vloc = torch.stack([rho, torch.zeros_like(rho), nz], -1)
-    Th = _hsh_flat_t(vloc, P).index_select(0, c["th_cols"]).t() * c["th_scale"]  # (B, Lp)
+    Th = hsh(vloc, P).index_select(1, c["th_cols"]) * c["th_scale"]  # (B, Lp)
     Ty = torch.cat([Th * (1.0 / math.sqrt(2.0)), Th, Th.new_zeros(B, 1)], -1)  # (B, 2Lp+1)
     if a.shape[0] == 1:  # shared BRDF: weights of E_pq by one small GEMM
         A = (c["A1"].reshape(-1, Lp, a.shape[-1]) @ a[0].t()).reshape(Ty.shape[1], -1)  # (2Lp+1, Lp C')

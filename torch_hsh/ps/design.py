@@ -33,7 +33,7 @@ from typing import List
 import numpy as np
 import torch
 
-from ..basis import _polar_consts, _polar_table_t, _safe_s, isotropic_indices, num_isotropic
+from ..basis import _polar_consts, _polar_table_t, _safe_s, azimuthal_factors, isotropic_indices, num_isotropic
 
 __all__ = ["MixedDesign", "mixed_design_matrix", "ridge_profile"]
 
@@ -150,11 +150,7 @@ class MixedDesign:
             a1 = sio * (lz.unsqueeze(0) - zi * zo.unsqueeze(-1))
             r1 = sio * sio * (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c).unsqueeze(-1)
         # azimuthal factors G_q (with the shading), sqrt(2) for q >= 1
-        gs = [mask]
-        if P >= 1:
-            gs.append(a1 * mask)
-            for _ in range(2, P + 1):
-                gs.append(2.0 * a1 * gs[-1] - r1 * gs[-2])
+        gs = azimuthal_factors(mask, a1, r1, P) if P >= 1 else [mask]
         gs = [gs[0]] + [g * math.sqrt(2.0) for g in gs[1:]]
         # Horner's rule for all M materials at once: (p, M, L) rows, one kernel per step
         t = t.unsqueeze(1)  # (p, 1, L)
@@ -202,13 +198,7 @@ def _design_factors(n: torch.Tensor, lights: torch.Tensor, order: int):
     rho = (1.0 - zi_c * zi_c) * (1.0 - zo_c * zo_c).unsqueeze(-1)
     sio = _safe_s(zi_c) * _safe_s(zo_c).unsqueeze(-1)
     mask = valid.to(dt) * zi_c  # shading max(0, n.l), zero where invalid
-    G = [mask]
-    if order >= 1:
-        a1 = sio * a
-        r1 = sio * sio * rho
-        G.append(a1 * mask)
-        for _ in range(2, order + 1):
-            G.append(2.0 * a1 * G[-1] - r1 * G[-2])
+    G = azimuthal_factors(mask, sio * a, sio * sio * rho, order) if order >= 1 else [mask]
     sq2 = math.sqrt(2.0)
     Gq = torch.stack([G[0]] + [g * sq2 for g in G[1:]], dim=-1)  # (p, L, P+1)
     Ri = _polar_table_t(zi_c.reshape(-1), order).t().reshape(p, L, U)  # (p, L, U)
