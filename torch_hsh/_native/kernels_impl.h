@@ -146,6 +146,17 @@ static void SUF(core_bwd_block)(int m, const T *ti, const T *to, const T *a1, co
 #define FWD_SCRATCH ((size_t)BS * (2 * L + P + 1 + K))
 #define BWD_SCRATCH ((size_t)BS * (4 * L + 4 * (P + 1) + K))
 
+/* One block of the five per-row scalars -> t_i, t_o, a1 = sio a, r1 = sio^2 rho and the flag. */
+static void SUF(load_scalars)(int m, const T *zi, const T *zo, const T *a, const T *rho, const T *sio,
+                              const uint8_t *valid, T *ti, T *to, T *a1, T *q1, T *v)
+{
+    for (int j = 0; j < m; ++j) {
+        ti[j] = 2 * zi[j] - 1; to[j] = 2 * zo[j] - 1;
+        a1[j] = sio[j] * a[j]; q1[j] = sio[j] * sio[j] * rho[j];
+        v[j] = valid[j] ? (T)1 : (T)0;
+    }
+}
+
 int SUF(iso_core_fwd)(int64_t r0, int64_t r1, const T *zi, const T *zo, const T *a, const T *rho, const T *sio,
                        const uint8_t *valid, CORE_ARGS, T *out)
 {
@@ -154,12 +165,7 @@ int SUF(iso_core_fwd)(int64_t r0, int64_t r1, const T *zi, const T *zo, const T 
     if (!scratch) return 1;  /* out of memory */
     for (int64_t b0 = r0; b0 < r1; b0 += BS) {
         int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        for (int j = 0; j < m; ++j) {
-            int64_t r = b0 + j;
-            ti[j] = 2 * zi[r] - 1; to[j] = 2 * zo[r] - 1;
-            a1[j] = sio[r] * a[r]; q1[j] = sio[r] * sio[r] * rho[r];
-            v[j] = valid[r] ? (T)1 : (T)0;
-        }
+        SUF(load_scalars)(m, zi + b0, zo + b0, a + b0, rho + b0, sio + b0, valid + b0, ti, to, a1, q1, v);
         SUF(core_fwd_block)(m, ti, to, a1, q1, v, CORE_PASS, out + b0 * K, scratch);
     }
     free(scratch);
@@ -174,12 +180,7 @@ int SUF(iso_core_bwd)(int64_t r0, int64_t r1, const T *zi, const T *zo, const T 
     if (!scratch) return 1;  /* out of memory */
     for (int64_t b0 = r0; b0 < r1; b0 += BS) {
         int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        for (int j = 0; j < m; ++j) {
-            int64_t r = b0 + j;
-            ti[j] = 2 * zi[r] - 1; to[j] = 2 * zo[r] - 1;
-            a1[j] = sio[r] * a[r]; q1[j] = sio[r] * sio[r] * rho[r];
-            v[j] = valid[r] ? (T)1 : (T)0;
-        }
+        SUF(load_scalars)(m, zi + b0, zo + b0, a + b0, rho + b0, sio + b0, valid + b0, ti, to, a1, q1, v);
         SUF(core_bwd_block)(m, ti, to, a1, q1, v, CORE_PASS, gout + b0 * gs0, gs0, gs1, gzi + b0, gzo + b0, ga1, gr1, scratch);
         for (int j = 0; j < m; ++j) {  /* a1 = sio a, r1 = sio^2 rho */
             int64_t r = b0 + j;
