@@ -266,3 +266,34 @@ def test_bad_compiler_is_reported(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "no C compiler" in out.stdout
+
+
+def _remap(d):
+    """The documented map to the sphere: d' = (s x, s y, 2z - 1), s = 2 sqrt(z / (1 + z))."""
+    d = torch.nn.functional.normalize(d, dim=-1)
+    s = 2.0 * torch.sqrt(d[:, 2] / (1.0 + d[:, 2]))
+    return torch.stack([s * d[:, 0], s * d[:, 1], 2.0 * d[:, 2] - 1.0], dim=-1)
+
+
+def _signs(order):
+    return torch.tensor([-1.0 if (m < 0 and (-m) % 2) else 1.0 for n in range(order + 1) for m in range(-n, n + 1)],
+                        dtype=F64)
+
+
+@pytest.mark.skipif(not HAS_SPHERICART, reason="sphericart-torch is not installed")
+def test_documented_mapping_to_sphericart(restore_backend):
+    """docs/conventions_and_errata.md: hsh(d)[:, k] = sqrt(2) sign_k Y_k(d') with sphericart's real SH."""
+    torch_hsh.set_backend("torch")  # the independent pure-torch kernel against sphericart itself
+    d = _dirs(500, 30, special=False)
+    Y = basis._sphericart_module().SphericalHarmonics(6)(_remap(d))
+    torch.testing.assert_close(torch_hsh.hsh(d, 6), math.sqrt(2.0) * _signs(6) * Y, rtol=0, atol=1e-12)
+
+
+def test_documented_mapping_to_e3nn():
+    """docs/conventions_and_errata.md: e3nn's spherical_harmonics (normalize=True, normalization='integral')
+    of the components (y', z', x') of d' equal sphericart's Y(d'), so hsh = sqrt(2) sign_k e3nn_k."""
+    o3 = pytest.importorskip("e3nn.o3")
+    d = _dirs(500, 31, special=False)
+    dp = _remap(d)
+    E = o3.spherical_harmonics(list(range(7)), dp[:, [1, 2, 0]], normalize=True, normalization="integral")
+    torch.testing.assert_close(torch_hsh.hsh(d, 6), math.sqrt(2.0) * _signs(6) * E, rtol=0, atol=1e-12)
