@@ -1,0 +1,111 @@
+"""Helpers of the tests that run the example and benchmark scripts (tests/test_*_quick.py).
+
+Every script runs in its own process, as a user would start it: ``sys.executable``, the repository
+root as the working folder, ``OMP_NUM_THREADS=1`` and matplotlib's ``Agg`` backend. Outputs go to
+``tmp_path``; nothing is written into the repository.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List, Sequence, Tuple
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLES = ROOT / "docs" / "tables"
+
+
+def run_script(script: str, *args, timeout: float = 600) -> subprocess.CompletedProcess:
+    """Run ``script`` (relative to the repository root) with ``args``; fail the test on a non-zero exit."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg")
+    t = time.perf_counter()
+    p = subprocess.run([sys.executable, str(ROOT / script), *map(str, args)], cwd=str(ROOT), env=env,
+                       capture_output=True, text=True, timeout=timeout)
+    p.wall_s = time.perf_counter() - t  # type: ignore[attr-defined]
+    assert p.returncode == 0, (f"{script} {' '.join(map(str, args))} exited {p.returncode}\n"
+                               f"--- stdout\n{p.stdout[-4000:]}\n--- stderr\n{p.stderr[-4000:]}")
+    return p
+
+
+def _last_digit(s: str) -> float:
+    """One unit in the last printed digit of a number as written (``0.0216128`` -> 1e-7, ``4.4e-11`` -> 1e-12)."""
+    m = re.fullmatch(r"[-+]?\d*(?:\.(\d*))?(?:[eE]([-+]?\d+))?", s.strip())
+    if m is None:
+        return 0.0
+    return 10.0 ** (int(m.group(2) or 0) - len(m.group(1) or ""))
+
+
+def same_value(new: str, committed: str) -> bool:
+    """Do two printed values agree, given that the tables print rounded values?
+
+    The values themselves agree to about 1e-12 relative when only the order of floating-point
+    operations differs, but the tables hold them rounded (6 significant digits, or 4 decimals in the
+    Markdown tables). A value close to a rounding boundary can then print one unit apart in the last
+    digit, so that is allowed, and nothing more. Values below 1e-12 in magnitude on both sides are
+    round-off (the error estimate of an exactly integrable BRDF, the reciprocity defect of a
+    reciprocal basis) and agree whatever their digits.
+    """
+    new, committed = new.strip(), committed.strip()
+    if new == committed:
+        return True
+    try:
+        x, y = float(new), float(committed)
+    except ValueError:
+        return False
+    if math.isnan(x) or math.isnan(y):
+        return False
+    if abs(x) < 1e-12 and abs(y) < 1e-12:
+        return True
+    unit = min(_last_digit(new), _last_digit(committed))
+    return abs(x - y) <= 1.0001 * unit + 1e-9 * abs(y)
+
+
+def read_csv(path: Path) -> Tuple[List[str], List[List[str]]]:
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    return rows[0], rows[1:]
+
+
+def read_md_tables(path: Path) -> List[Tuple[List[str], List[List[str]]]]:
+    """Every Markdown table of a file as ``(header, rows)`` (cells stripped)."""
+    tables, cur = [], None
+    for line in Path(path).read_text().splitlines():
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if cur is None:
+                cur = (cells, [])
+            elif not all(set(c) <= set("-: ") for c in cells):
+                cur[1].append(cells)
+        elif cur is not None:
+            tables.append(cur)
+            cur = None
+    if cur is not None:
+        tables.append(cur)
+    return tables
+
+
+def compare_rows(new: Sequence[Sequence[str]], committed: Sequence[Sequence[str]], nkey: int,
+                 skip_columns: Sequence[int] = ()) -> Dict[tuple, List[str]]:
+    """Every row of ``new`` must be a row of ``committed`` (matched on its first ``nkey`` cells), value for value.
+
+    Returns the committed rows that were matched, by key. Raises an ``AssertionError`` naming every
+    cell that differs.
+    """
+    by_key = {tuple(r[:nkey]): list(r) for r in committed}
+    bad, matched = [], {}
+    for r in new:
+        key = tuple(r[:nkey])
+        assert key in by_key, f"row {key} is not in the committed table"
+        ref = by_key[key]
+        assert len(r) == len(ref), (key, r, ref)
+        for j, (a, b) in enumerate(zip(r, ref)):
+            if j >= nkey and j not in skip_columns and not same_value(a, b):
+                bad.append(f"{key} column {j}: {a} (now) vs {b} (committed)")
+        matched[key] = ref
+    assert not bad, "values differ from the committed table:\n  " + "\n  ".join(bad[:20])
+    return matched
