@@ -109,3 +109,15 @@ def compare_rows(new: Sequence[Sequence[str]], committed: Sequence[Sequence[str]
         matched[key] = ref
     assert not bad, "values differ from the committed table:\n  " + "\n  ".join(bad[:20])
     return matched
+
+
+def tiny_diligent(folder: Path, size: int = 32, lights: int = 20, seed: int = 0) -> Path:
+    """A small DiLiGenT-layout object folder of the library's demo scene (bumpy sphere, GGX and Blinn-Phong
+    regions, cast shadows, noise), written by ``torch_hsh.io.save_diligent``; built in, no shared data."""
+    from torch_hsh.io import save_diligent
+    from torch_hsh.scenes import demo_scene
+
+    s = demo_scene(size, n_lights=lights, seed=seed)
+    inten = s["intensities"]
+    images = s["images"] / inten[:, None, None, :]  # save_diligent takes unit-intensity images
+    return save_diligent(folder, images, s["lights"], intensities=inten, mask=s["mask"], normals_gt=s["normals_gt"])
