@@ -12,6 +12,7 @@ import os
 import re
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
@@ -20,16 +21,50 @@ ROOT = Path(__file__).resolve().parents[1]
 TABLES = ROOT / "docs" / "tables"
 
 
-def run_script(script: str, *args, timeout: float = 600) -> subprocess.CompletedProcess:
-    """Run ``script`` (relative to the repository root) with ``args``; fail the test on a non-zero exit."""
+class Run:
+    """What a script run left: ``returncode``, ``stdout``, ``stderr``, ``wall_s`` and ``lines``, every stdout
+    line with the time (s after the start) at which this process could read it."""
+
+    def __init__(self, returncode, stdout, stderr, wall_s, lines):
+        self.returncode, self.stdout, self.stderr, self.wall_s, self.lines = returncode, stdout, stderr, wall_s, lines
+
+    def first(self, pattern: str) -> float:
+        """Time at which the first line matching ``pattern`` (regex) could be read."""
+        for t, line in self.lines:
+            if re.search(pattern, line):
+                return t
+        raise AssertionError(f"no line matches {pattern!r}:\n{self.stdout[-3000:]}")
+
+
+def run_script(script: str, *args, timeout: float = 600) -> Run:
+    """Run ``script`` (relative to the repository root) with ``args``; fail the test on a non-zero exit.
+
+    stdout is read line by line as the script writes it (through a pipe, so a script that does not
+    flush shows its lines only at exit), which lets a test check that measurements appear as they go.
+    """
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg")
-    t = time.perf_counter()
-    p = subprocess.run([sys.executable, str(ROOT / script), *map(str, args)], cwd=str(ROOT), env=env,
-                       capture_output=True, text=True, timeout=timeout)
-    p.wall_s = time.perf_counter() - t  # type: ignore[attr-defined]
-    assert p.returncode == 0, (f"{script} {' '.join(map(str, args))} exited {p.returncode}\n"
-                               f"--- stdout\n{p.stdout[-4000:]}\n--- stderr\n{p.stderr[-4000:]}")
-    return p
+    t0 = time.perf_counter()
+    lines = []
+    with tempfile.TemporaryFile(mode="w+") as err:
+        p = subprocess.Popen([sys.executable, str(ROOT / script), *map(str, args)], cwd=str(ROOT), env=env,
+                             stdout=subprocess.PIPE, stderr=err, text=True)
+        try:
+            assert p.stdout is not None
+            for line in p.stdout:
+                lines.append((time.perf_counter() - t0, line.rstrip("\n")))
+                if time.perf_counter() - t0 > timeout:
+                    raise subprocess.TimeoutExpired(script, timeout)
+            p.wait(timeout=max(1.0, timeout - (time.perf_counter() - t0)))
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        err.seek(0)
+        stderr = err.read()
+    r = Run(p.returncode, "\n".join(line for _, line in lines) + "\n", stderr, time.perf_counter() - t0, lines)
+    assert r.returncode == 0, (f"{script} {' '.join(map(str, args))} exited {r.returncode}\n"
+                               f"--- stdout\n{r.stdout[-4000:]}\n--- stderr\n{r.stderr[-4000:]}")
+    return r
 
 
 def _last_digit(s: str) -> float:
