@@ -43,6 +43,7 @@ def run_script(script: str, *args, timeout: float = 600) -> Run:
     flush shows its lines only at exit), which lets a test check that measurements appear as they go.
     """
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg")
+    env.pop("PYTHONUNBUFFERED", None)  # stdout to a pipe or a file is block-buffered unless the script flushes
     t0 = time.perf_counter()
     lines = []
     with tempfile.TemporaryFile(mode="w+") as err:
