@@ -38,7 +38,7 @@ as in a full run: every material's rule is converged on its own); ``--quick`` is
 cutoff study is empty then, its materials are the slow ones; the CI test compares the rows with the committed
 tables).
 
-Run: ``python examples/paper/compactness.py`` (about 10 minutes on one CPU core).
+Run: ``python examples/paper/compactness.py`` (6-10 minutes on one CPU core, depending on load).
 """
 from __future__ import annotations
 
