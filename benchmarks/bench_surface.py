@@ -91,7 +91,10 @@ def plain_cg(n, m, tol):
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1, user_api="blas"):  # as in the library's scipy path
-        x, _ = spla.cg(L, b, rtol=tol, maxiter=100000, callback=cb)
+        import inspect
+
+        rtol = {"rtol": tol} if "rtol" in inspect.signature(spla.cg).parameters else {"tol": tol}  # scipy < 1.12
+        x, _ = spla.cg(L, b, maxiter=100000, callback=cb, **rtol)
     out = np.zeros(H * W)
     out[flat] = x
     return torch.from_numpy(out.reshape(H, W)), it[0], float(np.linalg.norm(b - L @ x) / np.linalg.norm(b))
