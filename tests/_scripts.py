@@ -28,6 +28,11 @@ class Run:
     def __init__(self, returncode, stdout, stderr, wall_s, lines):
         self.returncode, self.stdout, self.stderr, self.wall_s, self.lines = returncode, stdout, stderr, wall_s, lines
 
+    @property
+    def last(self) -> float:
+        """Time at which the last stdout line could be read (not the exit, which can come much later)."""
+        return self.lines[-1][0] if self.lines else 0.0
+
     def first(self, pattern: str) -> float:
         """Time at which the first line matching ``pattern`` (regex) could be read."""
         for t, line in self.lines:
