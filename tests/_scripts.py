@@ -81,7 +81,7 @@ def _last_digit(s: str) -> float:
     return 10.0 ** (int(m.group(2) or 0) - len(m.group(1) or ""))
 
 
-def same_value(new: str, committed: str) -> bool:
+def same_value(new: str, committed: str, atol: float = 0.0) -> bool:
     """Do two printed values agree, given that the tables print rounded values?
 
     The values themselves agree to about 1e-12 relative when only the order of floating-point
@@ -89,7 +89,9 @@ def same_value(new: str, committed: str) -> bool:
     Markdown tables). A value close to a rounding boundary can then print one unit apart in the last
     digit, so that is allowed, and nothing more. Values below 1e-12 in magnitude on both sides are
     round-off (the error estimate of an exactly integrable BRDF, the reciprocity defect of a
-    reciprocal basis) and agree whatever their digits.
+    reciprocal basis) and agree whatever their digits. ``atol`` is an absolute tolerance on top (for
+    values that are round-off-limited in absolute terms, like spectral coefficients far below the
+    largest one: they come from sums of terms of the largest one's size).
     """
     new, committed = new.strip(), committed.strip()
     if new == committed:
@@ -103,7 +105,14 @@ def same_value(new: str, committed: str) -> bool:
     if abs(x) < 1e-12 and abs(y) < 1e-12:
         return True
     unit = min(_last_digit(new), _last_digit(committed))
-    return abs(x - y) <= 1.0001 * unit + 1e-9 * abs(y)
+    return abs(x - y) <= 1.0001 * unit + 1e-9 * abs(y) + atol
+
+
+def _number(s: str) -> float:
+    try:
+        return float(s)
+    except ValueError:
+        return float("nan")
 
 
 def read_csv(path: Path) -> Tuple[List[str], List[List[str]]]:
@@ -131,8 +140,11 @@ def read_md_tables(path: Path) -> List[Tuple[List[str], List[List[str]]]]:
 
 
 def compare_rows(new: Sequence[Sequence[str]], committed: Sequence[Sequence[str]], nkey: int,
-                 skip_columns: Sequence[int] = ()) -> Dict[tuple, List[str]]:
+                 skip_columns: Sequence[int] = (), row_atol: float = 0.0) -> Dict[tuple, List[str]]:
     """Every row of ``new`` must be a row of ``committed`` (matched on its first ``nkey`` cells), value for value.
+
+    ``row_atol``: an absolute tolerance of ``row_atol`` times the row's largest magnitude (see
+    :func:`same_value`).
 
     Returns the committed rows that were matched, by key. Raises an ``AssertionError`` naming every
     cell that differs.
@@ -144,8 +156,9 @@ def compare_rows(new: Sequence[Sequence[str]], committed: Sequence[Sequence[str]
         assert key in by_key, f"row {key} is not in the committed table"
         ref = by_key[key]
         assert len(r) == len(ref), (key, r, ref)
+        atol = row_atol * max([abs(v) for v in map(_number, ref[nkey:]) if math.isfinite(v)], default=0.0)
         for j, (a, b) in enumerate(zip(r, ref)):
-            if j >= nkey and j not in skip_columns and not same_value(a, b):
+            if j >= nkey and j not in skip_columns and not same_value(a, b, atol):
                 bad.append(f"{key} column {j}: {a} (now) vs {b} (committed)")
         matched[key] = ref
     assert not bad, "values differ from the committed table:\n  " + "\n  ".join(bad[:20])

@@ -25,12 +25,12 @@ def _outputs(tmp_path):
     return ["--images", tmp_path / "images", "--tables", tmp_path / "tables"]
 
 
-def _compare_csv(new_path, committed_name, nkey, full=False):
+def _compare_csv(new_path, committed_name, nkey, full=False, row_atol=0.0):
     h_new, rows_new = read_csv(new_path)
     h_ref, rows_ref = read_csv(TABLES / committed_name)
     assert h_new == h_ref
     assert rows_new, f"{new_path} has no rows"
-    compare_rows(rows_new, rows_ref, nkey)
+    compare_rows(rows_new, rows_ref, nkey, row_atol=row_atol)
     if full:  # the whole table, not a subset
         assert len(rows_new) == len(rows_ref)
     return rows_new
@@ -63,9 +63,11 @@ def test_mirror_lobes_table_and_figures(tmp_path):
 
 
 def test_torrance_sparrow_tables(tmp_path):
-    """Full run (seconds): the three TS tables equal the committed ones."""
+    """Full run (seconds): the three TS tables equal the committed ones. The spectrum's highest orders
+    (a_11, a_12 ~ 1e-11 against a_0 ~ 0.7) are sums of terms of a_0's size, so they are compared to
+    1e-13 of the row's largest coefficient (other torch/numpy versions move them by ~1e-14)."""
     p = run_script(f"{PAPER}/torrance_sparrow.py", *_outputs(tmp_path))
-    _compare_csv(tmp_path / "tables" / "ts_spectrum.csv", "ts_spectrum.csv", 1, full=True)
+    _compare_csv(tmp_path / "tables" / "ts_spectrum.csv", "ts_spectrum.csv", 1, full=True, row_atol=1e-13)
     acc = _compare_csv(tmp_path / "tables" / "ts_accuracy.csv", "ts_accuracy.csv", 1, full=True)
     _compare_csv(tmp_path / "tables" / "ts_regularisation.csv", "ts_regularisation.csv", 2, full=True)
     # Acc(P) is a cumulative energy fraction: non-decreasing in P, at most 1
