@@ -14,8 +14,9 @@ import numpy as np
 import torch
 
 
-def ensure_stack(size: int, lights: int) -> str:
-    out = Path(tempfile.gettempdir()) / f"torch_hsh_stack_{size}_{lights}"
+def ensure_stack(size: int, lights: int, folder=None) -> str:
+    """The stack's folder (made once, then reused) under ``folder`` (default: the temporary folder)."""
+    out = Path(folder or tempfile.gettempdir()) / f"torch_hsh_stack_{size}_{lights}"
     if (out / "images.npy").is_file():
         return str(out)
     from torch_hsh import scenes

@@ -30,8 +30,10 @@ seconds have passed, so a short device lease still returns the first parts):
    kernels under ``torch.compile`` (an experiment; the first, compiling
    solve is timed separately).
 
-A table is printed last; the full records go to ``--out`` as JSON, with the
-profiler's table beside them.
+Every measurement prints a line as soon as it ends (``flush``); the table is
+printed again last. The full records go to ``--out`` as JSON, with the profiler's
+table beside them. ``--quick`` (the CI smoke run, with ``--device cpu``: seconds):
+``--pixels 300 --lights 20 --repeat 1 --size 32``.
 """
 from __future__ import annotations
 
@@ -192,7 +194,10 @@ def main(argv=None):
                     help="last: also time the DiLiGenT-sized problem with the design kernels under torch.compile")
     ap.add_argument("--budget-s", type=float, default=330.0, help="start no new part after this many seconds")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--quick", action="store_true", help="smoke run: --pixels 300 --lights 20 --repeat 1 --size 32")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.pixels, args.lights, args.repeat, args.size = 300, 20, 1, 32
     t0 = time.perf_counter()
     dev = torch.device(args.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
@@ -204,7 +209,13 @@ def main(argv=None):
 
     rec = {"torch": torch.__version__, "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
            "cpu_threads": torch.get_num_threads()}
-    rows = []
+    class Rows(list):
+        def append(self, row):  # print each measurement as it ends
+            super().append(row)
+            name, w, e, m, stages = row
+            print(f"{name:48s} {w:8.3f} s, mean error {e:.2f} deg, peak {m:.0f} MB", flush=True)
+
+    rows = Rows()
 
     def over():
         return time.perf_counter() - t0 > args.budget_s
@@ -250,7 +261,7 @@ def main(argv=None):
                 save()
         except Exception as err:  # a measurement tool failing must not cost the parts after it
             rec["syncs_error"] = repr(err)
-            print("part 2 failed:", repr(err))
+            print("part 2 failed:", repr(err), flush=True)
 
     # 3. real captures
     if args.data:

@@ -23,6 +23,9 @@ cast_shadows=R)``) beside the default solver, with the same seeds;
 ``--basis-ridge R [R ...]`` a row per relative ridge on the shared basis
 BRDFs (``solve_hsh(basis_ridge=R)``), the knob that trades accuracy on
 specular objects against the seed spread (docs/photometric_stereo.md).
+
+Every solve prints a line as soon as it ends (``flush``). ``--quick`` (the CI smoke
+run): one thread, at most 400 random mask pixels per object, seed 0 only (unless given).
 """
 from __future__ import annotations
 
@@ -74,10 +77,12 @@ def main(argv=None):
     ap.add_argument("paths", nargs="+", help="object folders or DiLiGenT roots")
     ap.add_argument("--drop-first", type=int, default=0, help="skip the first N images of every object")
     ap.add_argument("--max-images", type=int, default=None)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="seeds of the HSH solver")
+    ap.add_argument("--seeds", type=int, nargs="+", default=None, help="seeds of the HSH solver (default 0)")
     ap.add_argument("--materials", default="default", help="HSH materials: default, auto, none or an integer")
     ap.add_argument("--order", type=int, default=None)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads of every solve (default 2; 1 with --quick). More threads than free cores "
+                         "make a solve many times slower, not faster")
     ap.add_argument("--max-pixels", type=int, default=None, help="random subset of the mask (quick runs)")
     ap.add_argument("--baseline", action="store_true", help="also run the baseline solver (6d85856 + linspace fix)")
     ap.add_argument("--baseline-seeds", type=int, nargs="+", default=None,
@@ -89,7 +94,17 @@ def main(argv=None):
     ap.add_argument("--cast-shadows", type=int, default=0,
                     help="R > 0: also run the solver with R rounds of the cast-shadow loop")
     ap.add_argument("--json", default=None, help="write every record to this JSON file")
+    ap.add_argument("--quick", action="store_true",
+                    help="CI smoke run: --threads 1 --max-pixels 400 --seeds 0 (unless given)")
     args = ap.parse_args(argv)
+    if args.threads is None:
+        args.threads = 1 if args.quick else 2
+    if args.seeds is None:
+        args.seeds = [0]
+    if args.quick and args.max_pixels is None:
+        args.max_pixels = 400
+    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
+        ap.error(f"--json {args.json!r}: the folder does not exist")
     if args.drop_first < 0:
         ap.error("--drop-first must be >= 0")
     common = ["--threads", args.threads, "--drop-first", args.drop_first]
@@ -116,6 +131,10 @@ def main(argv=None):
     for obj in expand(args.paths):
         name = object_name(obj)
         rec = {"lambertian": run_worker(["--data", obj, "--methods", "ls,trimmed", *common])}
+        for key, label in (("ls", "Lambertian LS"), ("trimmed", "trimmed LS")):
+            m = rec["lambertian"]["methods"][key]
+            print(f"  {name} {label}: mean {m['mean']:.2f} median {m['median']:.2f} time {m['time_s']:.1f} s",
+                  flush=True)
         for label, tree, extra in trees:
             runs = []
             seeds = args.seeds if tree is ROOT or args.baseline_seeds is None else args.baseline_seeds

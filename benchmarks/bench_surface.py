@@ -21,6 +21,8 @@ surface (pixels, after removing the mean), wall-clock and process CPU seconds (m
 ``--repeats``; on a machine shared with other jobs the CPU time is the steadier figure).
 ``--perspective``: the cost of the orthographic assumption on a DiLiGenT-like perspective camera.
 ``--data``: also integrates the ground-truth normals of a DiLiGenT-layout folder over its mask.
+Every measurement prints its row as soon as it ends (``flush``). ``--quick`` (the CI smoke run, seconds):
+``--sizes 48 96 --repeats 1 --bilateral-max 48 --reference-max 96 --threads 1``.
 """
 from __future__ import annotations
 
@@ -89,7 +91,10 @@ def plain_cg(n, m, tol):
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1, user_api="blas"):  # as in the library's scipy path
-        x, _ = spla.cg(L, b, rtol=tol, maxiter=100000, callback=cb)
+        import inspect
+
+        rtol = {"rtol": tol} if "rtol" in inspect.signature(spla.cg).parameters else {"tol": tol}  # scipy < 1.12
+        x, _ = spla.cg(L, b, maxiter=100000, callback=cb, **rtol)
     out = np.zeros(H * W)
     out[flat] = x
     return torch.from_numpy(out.reshape(H, W)), it[0], float(np.linalg.norm(b - L @ x) / np.linalg.norm(b))
@@ -143,7 +148,19 @@ def timed(fn, repeats):
     return out, statistics.median(times)
 
 
-def main():
+def _show(rows, row, size, m, ref_t, ref_c):
+    """Append ``row`` and print it at once (ratios against the reference measured in the same run)."""
+    name, its, res, err, t, cpu = row
+    rows.append(row)
+    ratio = f"{ref_t / t:8.1f} {ref_c / max(cpu, 1e-9):8.1f}" if ref_t else f"{'-':>8s} {'-':>8s}"
+    print(f"{size:>4d}^2 {name:22s} {int(m.sum()):9d} {its:7d} {res:8.1e} {err:8.4f} {t:7.2f} {cpu:7.2f} {ratio}",
+          flush=True)
+
+
+QUICK = dict(sizes=[48, 96], repeats=1, bilateral_max=48, reference_max=96, threads=1)
+
+
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
     ap.add_argument("--tol", type=float, default=1e-6)
@@ -155,13 +172,18 @@ def main():
     ap.add_argument("--data", default=None, help="DiLiGenT-layout folder (e.g. ../shared/data/diligent_cat)")
     ap.add_argument("--device", default="cpu",
                     help="cpu, or a GPU (cuda): then only the torch solver runs, timed with device synchronisation")
-    args = ap.parse_args()
+    ap.add_argument("--quick", action="store_true",
+                    help="CI smoke run: " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in QUICK.items()))
+    args = ap.parse_args(argv)
+    if args.quick:
+        for k, v in QUICK.items():
+            setattr(args, k, v)
     torch.set_num_threads(args.threads)
     from torch_hsh.surface import integrate_normals
 
     print(f"torch {torch.__version__}, {args.threads} threads, device {args.device}, tol {args.tol:g}")
     print(f"{'size':>6s} {'method':22s} {'unknowns':>9s} {'iters':>7s} {'resid':>8s} {'rms px':>8s} {'wall s':>7s} "
-          f"{'cpu s':>7s} {'ref/wall':>8s} {'ref/cpu':>8s}")
+          f"{'cpu s':>7s} {'ref/wall':>8s} {'ref/cpu':>8s}", flush=True)
     dev = torch.device(args.device)
     if dev.type not in ("cpu", "cuda"):
         ap.error(f"--device must be cpu or cuda, got {args.device!r}")
@@ -177,7 +199,7 @@ def main():
         if size <= args.reference_max and not gpu:
             (zr, its, res), ref_t = timed(lambda n=n, m=m: plain_cg(n, m, args.tol), 1)
             ref_c = timed.cpu
-            rows.append(("plain CG (ref)", its, res, rms_error(zr, z_true, m), ref_t, timed.cpu))
+            _show(rows, ("plain CG (ref)", its, res, rms_error(zr, z_true, m), ref_t, timed.cpu), size, m, ref_t, ref_c)
         combos = (("poisson", "torch"), ("bilateral", "torch")) if gpu else \
             (("poisson", "scipy"), ("poisson", "torch"), ("bilateral", "scipy"))
         for method, solver in combos:
@@ -194,10 +216,8 @@ def main():
             (z, info), t = timed(run, reps)
             its = sum(info["iterations"])
             name = f"{method}/{solver}" + (f" ({info['outer_iterations']} rw)" if method == "bilateral" else "")
-            rows.append((name, its, info["residual"], rms_error(z.cpu(), z_true, m.cpu()), t, timed.cpu))
-        for name, its, res, err, t, cpu in rows:
-            ratio = f"{ref_t / t:8.1f} {ref_c / max(cpu, 1e-9):8.1f}" if ref_t else f"{'-':>8s} {'-':>8s}"
-            print(f"{size:>4d}^2 {name:22s} {int(m.sum()):9d} {its:7d} {res:8.1e} {err:8.4f} {t:7.2f} {cpu:7.2f} {ratio}")
+            _show(rows, (name, its, info["residual"], rms_error(z.cpu(), z_true, m.cpu()), t, timed.cpu), size, m, ref_t,
+                  ref_c)
         if size == 1024 and not gpu:
             t, cpu = [(r[4], r[5]) for r in rows if r[0] == "poisson/scipy"][0]
             print(f"target: Poisson at 1024^2 under 10 s on {args.threads} threads at tol {args.tol:g}: "
@@ -208,7 +228,7 @@ def main():
         for off in ((0.0, 0.0), (120.0, 90.0), (250.0, 250.0)):
             rms, rng, sc, rms_s = perspective_cost(off=off)
             print(f"  object {math.hypot(*off):5.0f} px off axis: RMS {rms:.2f} px of a {rng:.0f} px depth range "
-                  f"({100 * rms / rng:.1f} %), best scale {sc:.3f}, RMS after scaling {rms_s:.2f} px")
+                  f"({100 * rms / rng:.1f} %), best scale {sc:.3f}, RMS after scaling {rms_s:.2f} px", flush=True)
     if args.data:
         from torch_hsh.io.diligent import load_diligent
 
@@ -216,7 +236,7 @@ def main():
         for method in ("poisson", "bilateral"):
             (z, info), t = timed(lambda method=method: integrate_normals(d.normals_gt, d.mask, method, return_info=True), 1)
             print(f"{args.data}: {method}: {int(d.mask.sum())} px, {info['components']} part(s), "
-                  f"{sum(info['iterations'])} CG iterations, {t:.2f} s")
+                  f"{sum(info['iterations'])} CG iterations, {t:.2f} s", flush=True)
 
 
 if __name__ == "__main__":

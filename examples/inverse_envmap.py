@@ -22,10 +22,17 @@ reference renders.
 
 Run: ``python examples/inverse_envmap.py [--envmaps ../shared/data/envmaps]`` (about 7 minutes on one loaded CPU core;
 most of it is the reference renders of the ground truth).
+
+``--synthetic`` replaces the four Poly Haven maps by built-in procedural skies (a sky gradient, a
+ground and a coloured sun, at four sun positions; 32 x 64 texels), so that the script runs without
+the data folder. ``--quick`` (the CI smoke run, a few seconds) is ``--synthetic`` with a 12 x 12
+sphere, lighting order 8 and 150 Adam steps. ``--json PATH`` also writes the reported errors to a
+JSON file.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -44,6 +51,30 @@ from torch_hsh.envmap import EnvironmentMap, render_envmap, render_envmap_refere
 TRAIN = ["venice_sunset_1k.exr", "overcast_soil_puresky_1k.exr", "royal_esplanade_1k.exr"]
 HELD_OUT = "pedestrian_overpass_1k.exr"
 DT = torch.float64
+
+
+#: ``--quick``: settings of the CI smoke run (with the built-in maps).
+QUICK = dict(size=12, light_order=8, steps=150)
+#: Built-in maps: (sun direction (world, y up), sun RGB, sky RGB, ground RGB); the last one is held out.
+SYNTHETIC = [
+    ((0.5, 0.6, 0.62), (30.0, 24.0, 16.0), (0.30, 0.45, 0.80), (0.25, 0.20, 0.15)),
+    ((-0.7, 0.3, 0.65), (40.0, 20.0, 8.0), (0.50, 0.40, 0.45), (0.20, 0.18, 0.15)),
+    ((0.0, 0.9, 0.44), (20.0, 20.0, 22.0), (0.40, 0.50, 0.70), (0.30, 0.30, 0.28)),
+    ((-0.3, 0.5, -0.8), (25.0, 22.0, 18.0), (0.35, 0.45, 0.75), (0.22, 0.22, 0.20)),
+]
+
+
+def synthetic_map(sun, sun_rgb, sky_rgb, ground_rgb, height: int = 32) -> EnvironmentMap:
+    """A procedural sky: brighter towards the zenith, a darker ground, a sun lobe ``exp(40 (d . s - 1))``."""
+    from torch_hsh.envmap import equirect_directions
+
+    d = equirect_directions(height, 2 * height, dtype=DT)
+    s = torch.nn.functional.normalize(torch.tensor(sun, dtype=DT), dim=0)
+    y = d[..., 1:2]
+    sky = torch.tensor(sky_rgb, dtype=DT) * (0.5 + 0.5 * y.clamp(min=0))
+    ground = torch.tensor(ground_rgb, dtype=DT) * (0.6 + 0.4 * (-y).clamp(min=0))
+    lobe = torch.exp(40.0 * ((d * s).sum(-1, keepdim=True) - 1.0)) * torch.tensor(sun_rgb, dtype=DT) * 0.05
+    return EnvironmentMap(torch.where(y >= 0, sky, ground) + lobe)
 
 
 def sphere(size: int):
@@ -74,16 +105,26 @@ def adam(params, loss_fn, steps: int, lr: float) -> float:
     return float(loss.detach())
 
 
-def main() -> None:
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--envmaps", type=Path, default=ROOT.parent / "shared" / "data" / "envmaps")
+    ap.add_argument("--synthetic", action="store_true", help="built-in procedural maps instead of --envmaps")
+    ap.add_argument("--quick", action="store_true",
+                    help="CI smoke run: --synthetic " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in QUICK.items()))
+    ap.add_argument("--json", type=Path, default=None, help="also write the reported errors to this JSON file")
     ap.add_argument("--size", type=int, default=32, help="sphere image size in pixels")
     ap.add_argument("--order", type=int, default=4, help="BRDF order P")
     ap.add_argument("--light-order", type=int, default=12, help="SH order N of the lighting in the model")
     ap.add_argument("--ref-height", type=int, default=64, help="rows of the map used by the reference renders")
     ap.add_argument("--steps", type=int, default=300, help="Adam steps")
     ap.add_argument("--threads", type=int, default=None)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.synthetic = True
+        for k, v in QUICK.items():
+            setattr(args, k, v)
+    if args.json is not None and not args.json.parent.is_dir():
+        ap.error(f"--json {str(args.json)!r}: the folder does not exist")
     if args.threads:
         torch.set_num_threads(args.threads)
     t0 = time.time()
@@ -92,14 +133,20 @@ def main() -> None:
     K = torch_hsh.num_isotropic(P)
 
     # known lighting: 3 maps x 3 turns; the held-out map
-    maps = [EnvironmentMap.from_exr(args.envmaps / f, dtype=DT) for f in TRAIN]
+    if args.synthetic:
+        maps = [synthetic_map(*m) for m in SYNTHETIC[:-1]]
+        held = synthetic_map(*SYNTHETIC[-1])
+    else:
+        maps = [EnvironmentMap.from_exr(args.envmaps / f, dtype=DT) for f in TRAIN]
+        held = EnvironmentMap.from_exr(args.envmaps / HELD_OUT, dtype=DT)
     train = [m.rotated(a) for m in maps for a in (0.0, 2 * math.pi / 3, 4 * math.pi / 3)]
-    held = EnvironmentMap.from_exr(args.envmaps / HELD_OUT, dtype=DT)
+    results = {"pixels": int(n.shape[0]), "lighting_conditions": len(train), "order": P, "light_order": N,
+               "steps": args.steps, "maps": "synthetic" if args.synthetic else str(args.envmaps)}
     L_train = [e.sh_coefficients(N) for e in train]
     L_held = held.sh_coefficients(N)
 
     def reference(brdf, env):  # ground-truth renders: analytic BRDF, texel quadrature
-        return render_envmap_reference(n, brdf, env.downsample(env.height // args.ref_height))
+        return render_envmap_reference(n, brdf, env.downsample(max(1, env.height // args.ref_height)))
 
     # ---------------------------------------------------------------- 1. shared RGB BRDF
     ggx = CookTorranceGGX(torch.tensor([0.55, 0.35, 0.2], dtype=DT), 1.0, 0.45)
@@ -113,6 +160,7 @@ def main() -> None:
                         for c in range(3)])  # (C, K)
     fit = torch.einsum("jpck,ck->jpc", X, a_ls)
     relit = render_envmap(n, a_ls, L_held)
+    results["shared_lstsq"] = {"fit": rel_rmse(fit, imgs), "relit": rel_rmse(relit, truth_held)}
     print(f"  least squares: fit {rel_rmse(fit, imgs):.4f}, relit held-out {rel_rmse(relit, truth_held):.4f} (relative RMSE)")
 
     brdf = torch_hsh.HelmholtzBRDF(order=P, channels=3, dtype=DT)
@@ -127,6 +175,7 @@ def main() -> None:
     with torch.no_grad():
         fit = torch.stack([render_envmap(n, brdf.coefficients, L) for L in L_train])
         relit = render_envmap(n, brdf.coefficients, L_held)
+    results["shared_adam"] = {"fit": rel_rmse(fit, imgs), "relit": rel_rmse(relit, truth_held)}
     print(f"  Adam ({args.steps} steps, {time.time() - t:.0f} s): fit {rel_rmse(fit, imgs):.4f}, "
           f"relit held-out {rel_rmse(relit, truth_held):.4f}")
 
@@ -156,6 +205,7 @@ def main() -> None:
     b, alb = b / s0, alb * s0  # fix the scale ambiguity (albedo x BRDF): b_000 = 1
     fit = torch.einsum("jpck,k,pc->jpc", Xg, b, alb)
     relit = render_envmap(n, (alb.unsqueeze(-1) * b), L_held)
+    results["textured_als"] = {"fit": rel_rmse(fit, imgs2), "relit": rel_rmse(relit, truth2)}
     print(f"  alternating least squares: fit {rel_rmse(fit, imgs2):.4f}, relit held-out {rel_rmse(relit, truth2):.4f}")
 
     grey = torch_hsh.HelmholtzBRDF(order=P, channels=1, dtype=DT, rho=1.0)
@@ -176,9 +226,14 @@ def main() -> None:
         a = coeffs()
         fit = torch.stack([render_envmap(n, a, L) for L in L_train])
         relit = render_envmap(n, a, L_held)
+    results["textured_adam"] = {"fit": rel_rmse(fit, imgs2), "relit": rel_rmse(relit, truth2)}
     print(f"  Adam ({args.steps} steps, {time.time() - t:.0f} s): fit {rel_rmse(fit, imgs2):.4f}, "
           f"relit held-out {rel_rmse(relit, truth2):.4f}")
-    print(f"\ntotal {time.time() - t0:.0f} s")
+    results["total_s"] = time.time() - t0
+    print(f"\ntotal {results['total_s']:.0f} s")
+    if args.json is not None:
+        args.json.write_text(json.dumps(results, indent=1))
+    return results
 
 
 if __name__ == "__main__":

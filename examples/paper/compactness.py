@@ -32,7 +32,13 @@ Outputs (refuses to overwrite them without ``--overwrite``):
 with ``--merl`` also ``compactness_merl.csv``, ``compactness_merl.md`` and
 ``paper_compactness_merl.png`` (``--merl-only``: just those).
 
-Run: ``python examples/paper/compactness.py`` (about 10 minutes on one CPU core).
+``--materials NAME ...`` restricts the analytic library to those materials (their rows are the same
+as in a full run: every material's rule is converged on its own); ``--quick`` is
+``--materials lambert_0.8 blinn_phong_n10 ggx_r0.8_f0.04 ward_aniso_0.3x0.6`` (about 10 s on one core; the
+cutoff study is empty then, its materials are the slow ones; the CI test compares the rows with the committed
+tables).
+
+Run: ``python examples/paper/compactness.py`` (6-10 minutes on one CPU core, depending on load).
 """
 from __future__ import annotations
 
@@ -53,6 +59,9 @@ from torch_hsh.bases.westin import pair_table  # noqa: E402
 from torch_hsh.quadrature import direction_quadrature  # noqa: E402
 
 THRESH = (0.95, 0.99)
+#: ``--quick``: one cheap material per kind (Lambertian, Blinn-Phong, GGX with its grazing cutoff, anisotropic Ward).
+QUICK_MATERIALS = ("lambert_0.8", "blinn_phong_n10", "ggx_r0.8_f0.04", "ward_aniso_0.3x0.6")
+CUTOFF_MATERIALS = ("ggx_r0.5_f0.04", "ward_iso_a0.25", "oren_nayar_s0.5")
 
 
 def min_order(acc_row: np.ndarray, thr: float) -> float:
@@ -206,7 +215,21 @@ def main(argv=None):
     p.add_argument("--merl-only", action="store_true", help="with --merl: skip the analytic library")
     p.add_argument("--merl-tol", type=float, default=2e-3, help="target change of Acc(P'), MERL lookups")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--materials", nargs="+", default=None, metavar="NAME",
+                   help="only these materials of the analytic library (default: all 31)")
+    p.add_argument("--quick", action="store_true",
+                   help="CI smoke run: --materials " + " ".join(QUICK_MATERIALS) + " (about 10 s)")
     args = p.parse_args(argv)
+    if args.quick and args.materials is None:
+        args.materials = list(QUICK_MATERIALS)
+    if args.materials is not None:
+        known = [n for n, _, _ in C.material_library()]
+        unknown = [n for n in args.materials if n not in known]
+        if unknown:
+            p.error(f"--materials: unknown {', '.join(unknown)}; the library has {', '.join(known)}")
+        kinds = {iso for n, _, iso in C.material_library() if n in args.materials}
+        if kinds != {True, False}:
+            p.error("--materials needs at least one isotropic and one anisotropic (ward_aniso_*) material")
     C.set_threads(args.threads)
     import matplotlib
 
@@ -236,12 +259,14 @@ def main(argv=None):
         assert err < 1e-10, (bn, err)
 
     lib = C.material_library()
+    if args.materials is not None:
+        lib = [m for m in lib if m[0] in args.materials]
     iso_names = [n for n, _, iso_ in lib if iso_]
     an_names = [n for n, _, iso_ in lib if not iso_]
     iso_mats = [(n, C.as_scalar_brdf(m)) for n, m, i in lib if i]
     iso, iso_meta = run_isotropic(iso_mats, P, args.tol, args.cutoff, progress)
     t_iso = time.time() - t0
-    cut_rows = cutoff_study([m for m in iso_mats if m[0] in ("ggx_r0.5_f0.04", "ward_iso_a0.25", "oren_nayar_s0.5")],
+    cut_rows = cutoff_study([m for m in iso_mats if m[0] in CUTOFF_MATERIALS],
                             8, args.tol, (0.1, 0.03, 0.01, 0.003), progress)
     an, an_meta = run_anisotropic([(n, C.as_scalar_brdf(m)) for n, m, i in lib if not i], P, args.tol_aniso,
                                   args.max_dirs, progress)

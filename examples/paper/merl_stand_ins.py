@@ -21,7 +21,9 @@ tabulated version is finite only because the grazing bins are bounded.
 
 Outputs: ``docs/tables/compactness_merl.csv``, ``compactness_merl.md``,
 ``docs/images/paper_compactness_merl.png`` (step 2) and ``docs/tables/merl_stand_ins.md``
-(step 3). Run: ``python examples/paper/merl_stand_ins.py`` (a few minutes).
+(step 3). Run: ``python examples/paper/merl_stand_ins.py`` (a few minutes). ``--materials NAME ...`` runs a
+subset of the stand-ins (their rows are those of the full run); ``--quick`` (CI) is ``--materials
+blinn_phong_n10`` (about 10 s); give it a ``--merl-dir`` of its own (the folder's ``.binary`` files all go into step 2).
 
 On the real database: download the MERL ``.binary`` files into a folder and run
 ``python examples/paper/compactness.py --merl /path/to/brdfs --merl-only``.
@@ -46,18 +48,19 @@ from torch_hsh.io.merl import MERL_SHAPE, tabulate_merl, write_merl  # noqa: E40
 
 STAND_INS = ("lambert_0.8", "lambert_0.3", "blinn_phong_n3", "blinn_phong_n10", "blinn_phong_n20", "blinn_phong_n50",
              "blinn_phong_n100")
+QUICK_STAND_INS = ("blinn_phong_n10",)
 PAPER_CLAIMS = "all MERL materials reach 95 % at P <= 7; fabrics reach 99 % at P <= 4"
 
 
-def write_stand_ins(folder: Path, overwrite: bool):
+def write_stand_ins(folder: Path, overwrite: bool, names=STAND_INS):
     lib = {n: m for n, m, _ in C.material_library()}
     folder.mkdir(parents=True, exist_ok=True)
-    for name in STAND_INS:
+    for name in names:
         path = folder / f"{name}.binary"
         if path.exists() and not overwrite:
             continue
         write_merl(path, tabulate_merl(lib[name], MERL_SHAPE), overwrite=overwrite)
-    return {n: C.as_scalar_brdf(lib[n]) for n in STAND_INS}
+    return {n: C.as_scalar_brdf(lib[n]) for n in names}
 
 
 def binning_check(f, g, P, n_theta, n_phi):
@@ -89,12 +92,17 @@ def main(argv=None):
     p = C.base_parser(__doc__.split("\n")[0])
     p.add_argument("--merl-dir", type=Path, default=C.ROOT / "build" / "merl_stand_ins")
     p.add_argument("--check-rule", type=int, nargs=2, default=(48, 1024), metavar=("N_THETA", "N_PHI"))
+    p.add_argument("--materials", nargs="+", default=list(STAND_INS), choices=STAND_INS, metavar="NAME",
+                   help=f"subset of the stand-ins {', '.join(STAND_INS)} (default: all)")
+    p.add_argument("--quick", action="store_true", help="CI smoke run: --materials " + " ".join(QUICK_STAND_INS))
     args = p.parse_args(argv)
+    if args.quick:
+        args.materials = list(QUICK_STAND_INS)
     C.set_threads(args.threads)
     out = args.tables / "merl_stand_ins.md"
     C.prepare_outputs([out], args.overwrite)
     t0 = time.time()
-    analytic = write_stand_ins(args.merl_dir, args.overwrite)
+    analytic = write_stand_ins(args.merl_dir, args.overwrite, args.materials)
     cargs = ["--merl", str(args.merl_dir), "--merl-only", "--images", str(args.images), "--tables", str(args.tables),
              "--no-progress"]
     compactness.main(cargs + (["--overwrite"] if args.overwrite else []))

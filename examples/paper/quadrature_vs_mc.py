@@ -17,7 +17,10 @@ L2 error of the coefficient vector, ``|a - a_ref| / |a_ref|``.
 Outputs (refuses to overwrite without ``--overwrite``): ``docs/images/paper_quadrature_vs_mc.png``,
 ``docs/tables/quadrature_vs_mc.csv``.
 
-Run: ``python examples/paper/quadrature_vs_mc.py`` (about a minute).
+``--quick`` (CI): one material (``blinn_phong_n10``) and a few sizes of each method; its rows are
+rows of the full table (same rules, same seeds), which the CI test checks against the committed CSV.
+
+Run: ``python examples/paper/quadrature_vs_mc.py`` (10-60 s depending on load; ``--quick``: a few seconds).
 """
 from __future__ import annotations
 
@@ -33,6 +36,8 @@ import _common as C  # noqa: E402
 from torch_hsh.fitting import project  # noqa: E402
 
 MATERIALS = ["blinn_phong_n10", "blinn_phong_n40", "oren_nayar_s0.35"]
+#: ``--quick``: materials and sizes (a subset of the full run's rows).
+QUICK = dict(materials=["blinn_phong_n10"], reduced_sizes=[4, 8, 16], product_sizes=[3, 6], mc_samples=[1000, 10000])
 
 
 def main(argv=None):
@@ -43,7 +48,14 @@ def main(argv=None):
     p.add_argument("--mc-samples", type=int, nargs="+", default=[1000, 3000, 10000, 30000, 100000, 300000])
     p.add_argument("--reduced-sizes", type=int, nargs="+", default=[4, 6, 8, 12, 16, 24, 32])
     p.add_argument("--product-sizes", type=int, nargs="+", default=[3, 4, 6, 8, 12])
+    p.add_argument("--materials", nargs="+", default=MATERIALS, choices=MATERIALS, metavar="NAME",
+                   help=f"subset of {', '.join(MATERIALS)} (default: all)")
+    p.add_argument("--quick", action="store_true",
+                   help="CI smoke run: one material, a few sizes (a subset of the full table's rows)")
     args = p.parse_args(argv)
+    if args.quick:
+        for k, v in QUICK.items():
+            setattr(args, k, v)
     C.set_threads(args.threads)
     import matplotlib
 
@@ -55,7 +67,7 @@ def main(argv=None):
     lib = {n: m for n, m, _ in C.material_library()}
     P, bn = args.order, args.basis
     rows = []
-    for name in tqdm(MATERIALS, desc="materials"):
+    for name in tqdm(args.materials, desc="materials"):
         f = C.as_scalar_brdf(lib[name])
         ref = project(f, P, basis=bn, n_theta=64, n_phi=128)
         nref = float(ref.norm())
@@ -74,8 +86,10 @@ def main(argv=None):
             rows.append([name, "monte_carlo", n, float(np.mean(e))])
     C.write_csv(files[1], ["material", "method", "brdf_evaluations", "relative_coefficient_error"], rows)
 
-    fig, axes = plt.subplots(1, len(MATERIALS), figsize=(5 * len(MATERIALS), 4), sharey=True)
-    for ax, name in zip(axes, MATERIALS):
+    fig, axes = plt.subplots(1, len(args.materials), figsize=(5 * len(args.materials), 4), sharey=True,
+                             squeeze=False)
+    axes = axes[0]
+    for ax, name in zip(axes, args.materials):
         for meth, st in (("reduced", "o-"), ("product", "s-"), ("monte_carlo", "^-")):
             r = [x for x in rows if x[0] == name and x[1] == meth]
             ax.loglog([x[2] for x in r], [max(x[3], 1e-16) for x in r], st, label=meth)
