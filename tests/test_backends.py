@@ -318,3 +318,23 @@ def test_cuda_matches_cpu(backend, restore_backend):
             for u, v in zip(g_cpu, g_gpu):
                 if u is not None:
                     torch.testing.assert_close(v.cpu(), u, rtol=0, atol=1e-9 * max(1.0, float(u.abs().max())))
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork()")
+def test_thread_pool_survives_fork():
+    """A DataLoader-style forked worker gets its own pool (an inherited one has no threads)."""
+    code = (
+        "import os, torch, torch_hsh\n"
+        "torch.set_num_threads(2)\n"
+        "d = torch.nn.functional.normalize(torch.rand(20000, 3), dim=-1)\n"
+        "ref = torch_hsh.helmholtz_isotropic(d, d.flip(0), 3)\n"
+        "pid = os.fork()\n"
+        "if pid == 0:\n"
+        "    out = torch_hsh.helmholtz_isotropic(d, d.flip(0), 3)\n"
+        "    os._exit(0 if torch.equal(out, ref) else 3)\n"
+        "_, status = os.waitpid(pid, 0)\n"
+        "print(os.waitstatus_to_exitcode(status))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "0"

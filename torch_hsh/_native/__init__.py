@@ -153,8 +153,10 @@ def parallel_rows(fn: Callable[..., int], n: int, *args) -> None:
     if nt <= 1:
         codes = [fn(0, n, *args)]
     else:
-        if _pool is None or _pool._max_workers < nt:  # type: ignore[attr-defined]
+        # a pool inherited through fork() has no threads in the child: make a new one there
+        if _pool is None or _pool._max_workers < nt or _state.get("pool_pid") != os.getpid():  # type: ignore[attr-defined]
             _pool = ThreadPoolExecutor(max_workers=max(nt, os.cpu_count() or 1), thread_name_prefix="torch_hsh")
+            _state["pool_pid"] = os.getpid()
         step = -(-n // nt)
         step = -(-step // _BLOCK) * _BLOCK
         futs = [_pool.submit(fn, r0, min(n, r0 + step), *args) for r0 in range(0, n, step)]
