@@ -320,18 +320,26 @@ def test_cuda_matches_cpu(backend, restore_backend):
                     torch.testing.assert_close(v.cpu(), u, rtol=0, atol=1e-9 * max(1.0, float(u.abs().max())))
 
 
-@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork()")
+@pytest.mark.skipif(not hasattr(os, "fork") or not HAS_NATIVE, reason="needs fork() and the C kernels")
 def test_thread_pool_survives_fork():
-    """A DataLoader-style forked worker gets its own pool (an inherited one has no threads)."""
+    """A forked child gets its own row-splitting pool (an inherited one has no threads and would hang).
+
+    The child calls the kernel through ``parallel_rows`` only: torch's own OpenMP regions are not
+    fork-safe (which is why DataLoader workers run on one torch thread)."""
     code = (
-        "import os, torch, torch_hsh\n"
+        "import os, numpy as np, torch, torch_hsh\n"
+        "from torch_hsh import _native, basis\n"
         "torch.set_num_threads(2)\n"
-        "d = torch.nn.functional.normalize(torch.rand(20000, 3), dim=-1)\n"
-        "ref = torch_hsh.helmholtz_isotropic(d, d.flip(0), 3)\n"
+        "n = 20000\n"
+        "d = torch.nn.functional.normalize(torch.rand(n, 3), dim=-1); e = d.flip(0).contiguous()\n"
+        "ref = torch_hsh.helmholtz_isotropic(d, e, 3).numpy().copy()\n"
+        "K, tab = basis._iso_core_args(3, torch.float32)\n"
+        "out = torch.zeros(n, K)\n"
+        "fn = _native.library().iso_dirs_fwd_f32\n"
         "pid = os.fork()\n"
         "if pid == 0:\n"
-        "    out = torch_hsh.helmholtz_isotropic(d, d.flip(0), 3)\n"
-        "    os._exit(0 if torch.equal(out, ref) else 3)\n"
+        "    _native.parallel_rows(fn, n, d.data_ptr(), e.data_ptr(), 1e-30, 1e-6, *tab, out.data_ptr())\n"
+        "    os._exit(0 if np.array_equal(out.numpy(), ref) else 3)\n"
         "_, status = os.waitpid(pid, 0)\n"
         "print(os.waitstatus_to_exitcode(status))\n"
     )
