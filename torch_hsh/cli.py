@@ -353,13 +353,19 @@ def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         d.update(images=d["images"][sel], lights=d["lights"][sel], intensities=d["intensities"][sel])
         return d
     from .io.diligent import load_diligent
+    from .io.rti import is_rti_folder, load_rti
 
     folder = Path(args.data)
-    if not folder.is_dir():
+    rti = is_rti_folder(folder)  # an RTI capture: *.lp + photographs (torch_hsh.io.rti)
+    if not folder.is_dir() and not rti:
         ap.error(f"argument --data: {folder} is not a folder")
     try:
-        ds = load_diligent(folder, dtype=torch.float32, normalize_intensities=True,
-                           drop_first=args.drop_first, max_images=args.max_images)
+        if rti:
+            ds = load_rti(folder, linear=args.linear, dtype=torch.float32, drop_first=args.drop_first,
+                          max_images=args.max_images)
+        else:
+            ds = load_diligent(folder, dtype=torch.float32, normalize_intensities=True,
+                               drop_first=args.drop_first, max_images=args.max_images)
     except ValueError as err:
         if "no images left" in str(err):
             ap.error(f"argument --drop-first/--max-images: {err}")
@@ -466,7 +472,10 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
         description="Photometric stereo with the isotropic Helmholtz HSH basis on a DiLiGenT-layout folder "
                     "or, without --data, on a built-in synthetic scene. Writes a result folder atomically.",
     )
-    p.add_argument("--data", default=None, help="DiLiGenT-layout object folder (default: synthetic scene)")
+    p.add_argument("--data", default=None, help="DiLiGenT-layout object folder, or an RTI capture (a folder with one "
+                                                "*.lp file and its photographs; default: synthetic scene)")
+    p.add_argument("--linear", action="store_true",
+                   help="RTI captures only: the photographs are already linear (default: remove the sRGB curve)")
     p.add_argument("--out", default="results/ps_demo", help="output folder (default results/ps_demo)")
     p.add_argument("--order", type=_int_in(0, 12), default=None,
                    help="HSH order (default torch_hsh.ps.DEFAULT_ORDER)")
