@@ -9,6 +9,8 @@ Subcommands:
   folder.
 * ``torch-hsh fit`` — project a MERL ``.binary`` BRDF onto the isotropic
   Helmholtz basis and write the coefficients (``.npz``) and a JSON summary.
+* ``torch-hsh lights`` / ``torch-hsh rti`` — RTI captures: light directions from a
+  glossy sphere, and the HSH RTI export of a result (see :mod:`torch_hsh.cli_rti`).
 
 Conventions: every argument and input file is checked before any folder is
 created and before the solve. A bad argument gets an argparse message and exit
@@ -730,7 +732,7 @@ def _run_fit(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
 # entry points
 # --------------------------------------------------------------------------- #
 def build_parser() -> argparse.ArgumentParser:
-    """The ``torch-hsh`` argument parser (subcommands ``ps`` and ``fit``)."""
+    """The ``torch-hsh`` argument parser (subcommands ``ps``, ``fit``, ``lights`` and ``rti``)."""
     from . import __version__
 
     ap = argparse.ArgumentParser(prog=PROG, description="Helmholtz HSH BRDF tools (torch_hsh).")
@@ -739,6 +741,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     _ps_parser(sub)
     _fit_parser(sub)
+    from .cli_rti import add_rti_commands  # lights, rti (torch_hsh/cli_rti.py)
+
+    add_rti_commands(sub)
     return ap
 
 

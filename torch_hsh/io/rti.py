@@ -38,6 +38,34 @@ follow, a zero light vector, a line that is not ``name lx ly lz`` with finite
 numbers, a light below the horizon, a missing image, images of different
 sizes, an image that cannot be decoded.
 
+HSH RTI output (:func:`write_rti_hsh`, :func:`save_relight`) -- the layouts the
+viewers read, taken from their loaders (clean-room: read for the format, no
+code copied; RTIViewer is GPL, this package MIT):
+
+* **``.rti`` (RTIViewer)** -- RTIViewer's ``UniversalRti::load`` and
+  ``Hsh::loadData`` (``rtiviewer/src/universalrti.cpp``, ``hsh.cpp``; also
+  ``LRti::loadHSH`` in ``relight/src/legacy_rti.cpp``): text lines ``#HSH1.2``
+  (comments start with ``#``), the RTI type ``3`` (HSH), ``width height 3``,
+  ``terms basis_type element_size`` (we write ``terms 2 1``); then
+  ``terms`` little-endian float32 **scales** and ``terms`` float32 **biases**;
+  then one byte per coefficient, pixel by pixel, rows from the **top** of the
+  image, and per pixel the red terms, then green, then blue. A coefficient is
+  ``byte / 255 * scale[t] + bias[t]`` (one scale and bias per term, shared
+  by the colours). Row order: RTIViewer renders row ``j`` of the file as image
+  row ``j`` (``Hsh::createImage`` fills a top-down ``QImage``), and ``relight``
+  flips rows on reading (``Y = height - 1 - y``) to its bottom-up storage.
+* **relight / OpenLIME folder** -- ``RtiBuilder::saveJSON``
+  (``relight/src/cli/rtibuilder.cpp``) and OpenLIME's ``LayerRTI``
+  and ``ShaderRTI`` (``type: "hsh"``, ``colorspace: "rgb"``): ``info.json`` with
+  ``width``, ``height``, ``format``, ``type``, ``colorspace``, ``nplanes`` (27),
+  ``quality`` and ``materials: [{"scale": [27], "bias": [27]}]``; images
+  ``plane_0.jpg`` ... ``plane_8.jpg``, plane ``j`` holding term ``j`` of red,
+  green and blue in its three channels (standard top-down images). A
+  coefficient is ``(value - bias[3 j + c]) * scale[3 j + c]`` with ``value`` the
+  channel in ``[0, 1]`` (byte / 255). OpenLIME's HSH evaluates 9 terms
+  (``HSH.lightWeights``), ``relight`` builds 4 or 9 (``pickBaseHSH``), so this
+  layout is written for 9 terms only.
+
 Example:
     >>> from torch_hsh.io.rti import load_rti, save_rti  # doctest: +SKIP
     >>> save_rti("capture", images, lights)              # doctest: +SKIP
@@ -65,6 +93,8 @@ __all__ = [
     "srgb_encode",
     "load_rti",
     "save_rti",
+    "write_rti_hsh",
+    "save_relight",
 ]
 
 #: Light vectors shorter than this are rejected as zero vectors (``relight`` uses 1e-4).
@@ -509,3 +539,111 @@ def save_rti(
     write_lp(folder / lp_name, names, li, overwrite=overwrite)
     return folder
 
+
+
+# --------------------------------------------------------------------------- #
+# HSH RTI output
+# --------------------------------------------------------------------------- #
+def _coeff_maps(coefficients, what: str) -> np.ndarray:
+    c = _to_numpy(coefficients, "coefficients").astype(np.float64)
+    if c.ndim != 4 or c.shape[2] != 3 or c.shape[3] not in (9, 16):
+        raise ValueError(f"`coefficients` must have shape (H, W, 3, T) with T 9 or 16 for {what}, got {c.shape}")
+    if not np.isfinite(c).all():
+        raise ValueError("`coefficients` contains NaN or Inf values")
+    return c
+
+
+def _quantise(v: np.ndarray, lo: np.ndarray, span: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint((v - lo) / span * 255.0), 0, 255).astype(np.uint8)
+
+
+def write_rti_hsh(path, coefficients, overwrite: bool = False) -> Path:
+    r"""Write RTI HSH coefficient maps as an RTIViewer ``.rti`` file (layout in the module docstring).
+
+    Args:
+        path: target ``.rti`` file (refused if it exists unless ``overwrite``).
+        coefficients: ``(H, W, 3, T)`` coefficients of the RTI HSH basis
+            (:func:`torch_hsh.rti.rti_hsh_basis`, ``T`` = 9 or 16), in display
+            units (1 = white), row 0 at the top of the image.
+
+    Quantisation: per term ``t``, ``bias = min`` and ``scale = max - min`` over
+    every pixel and colour, so the error of a coefficient is at most
+    ``scale[t] / 510``.
+
+    Returns:
+        The path.
+
+    Example:
+        >>> write_rti_hsh("object.rti", project_to_rti(res.normals, res.coefficients, 9))  # doctest: +SKIP
+    """
+    c = _coeff_maps(coefficients, ".rti")
+    H, W, _, T = c.shape
+    p = Path(path)
+    if p.exists() and not overwrite:
+        raise FileExistsError(f"{p} exists; pass overwrite=True to replace it")
+    lo = c.min(axis=(0, 1, 2))
+    span = c.max(axis=(0, 1, 2)) - lo
+    span = np.where(span > 0, span, 1.0)
+    codes = _quantise(c, lo, span)  # (H, W, 3, T): per pixel R terms, G terms, B terms
+    head = f"#HSH1.2\n3\n{W} {H} 3\n{T} 2 1\n".encode("ascii")
+    data = head + span.astype("<f4").tobytes() + lo.astype("<f4").tobytes() + np.ascontiguousarray(codes).tobytes()
+    tmp = p.with_name(p.name + ".partial")
+    tmp.write_bytes(data)
+    tmp.replace(p)
+    return p
+
+
+def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwrite: bool = False) -> Path:
+    r"""Write 9-term RTI HSH coefficient maps as a relight / OpenLIME folder (``info.json`` + ``plane_*.jpg``).
+
+    Args:
+        path: output folder (created; must be empty unless ``overwrite``).
+        coefficients: ``(H, W, 3, 9)`` coefficients (as :func:`write_rti_hsh`).
+        fmt: ``"jpg"`` (default; what relight writes, lossy) or ``"png"``
+            (lossless, ``"format": "png"`` in ``info.json``).
+        quality: JPEG quality (written to ``info.json`` too).
+
+    Quantisation: per plane (term and colour) ``scale = max - min`` and
+    ``bias = -min / scale``; the error of a coefficient is at most
+    ``scale / 510`` plus the JPEG error.
+
+    Returns:
+        The folder.
+
+    Example:
+        >>> save_relight("object_relight", project_to_rti(res.normals, res.coefficients, 9))  # doctest: +SKIP
+    """
+    import json
+
+    from PIL import Image
+
+    c = _coeff_maps(coefficients, "relight")
+    if c.shape[3] != 9:
+        raise ValueError(f"relight/OpenLIME evaluate 9 HSH terms; got {c.shape[3]}")
+    fmt = fmt.lower().lstrip(".")
+    if fmt not in ("jpg", "png"):
+        raise ValueError(f"`fmt` must be 'jpg' or 'png', got {fmt!r}")
+    H, W = c.shape[:2]
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"`path` {folder} exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
+    folder.mkdir(parents=True, exist_ok=True)
+    planes = c.transpose(0, 1, 3, 2).reshape(H, W, 27)  # plane index 3 j + colour
+    lo = planes.min(axis=(0, 1))
+    span = planes.max(axis=(0, 1)) - lo
+    span = np.where(span > 0, span, 1.0)
+    codes = _quantise(planes, lo, span)
+    for j in range(9):
+        img = np.ascontiguousarray(codes[..., 3 * j: 3 * j + 3])
+        f = folder / f"plane_{j}.{fmt}"
+        if fmt == "png":
+            _write_png(f, img)
+        else:
+            Image.fromarray(img).save(f, quality=int(quality), subsampling=0)
+    info = {"width": W, "height": H, "format": fmt, "type": "hsh", "colorspace": "rgb", "nplanes": 27,
+            "quality": int(quality), "materials": [{"scale": [float(v) for v in span],
+                                                    "bias": [float(v) for v in -lo / span]}]}
+    (folder / "info.json").write_text(json.dumps(info, indent=1) + "\n", encoding="utf-8")
+    return folder
