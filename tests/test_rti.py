@@ -321,11 +321,58 @@ def test_projection_error_and_plain_fit_on_held_out_lights():
     test = scenes.diligent_like_lights(12, seed=4, dtype=torch.float64)
     full = srgb(exposure * render_coefficients(n, test, a).clamp(min=0))[:, m]  # what a camera would record
     photos = torch.round(srgb(exposure * render_coefficients(n, train, a).clamp(min=0)) * 255) / 255
+    cap = float(torch.rad2deg(torch.arccos(train[:, 2])).max())
     err = {}
     for terms in (9, 16):
-        proj = evaluate_rti(project_to_rti(n, a, terms, mask=m, exposure=exposure, nz=24, nphi=48), test)[:, m]
+        proj = evaluate_rti(project_to_rti(n, a, terms, mask=m, exposure=exposure), test)[:, m]
+        capped = evaluate_rti(project_to_rti(n, a, terms, mask=m, exposure=exposure, max_angle_deg=cap), test)[:, m]
         plain = evaluate_rti(fit_rti(photos, train, terms, mask=m), test)[:, m]
-        err[terms] = (float((proj - full).pow(2).mean().sqrt()), float((plain - full).pow(2).mean().sqrt()))
-    # both truncations leave an error of a few percent of white; more terms help the projection
-    assert err[16][0] < err[9][0] < 0.1
-    assert all(e[1] < 0.1 for e in err.values())
+        err[terms] = [float((x - full).pow(2).mean().sqrt()) for x in (proj, capped, plain)]
+    # truncation leaves an error of a few percent of white; more terms help; fitting the cap of the
+    # captured lights beats the whole-hemisphere projection on lights inside that cap
+    assert err[16][0] < err[9][0] < 0.1 and err[16][1] < err[9][1]
+    assert all(e[1] < e[0] and e[2] < 0.1 for e in err.values()), err
+    with pytest.raises(ValueError, match="max_angle_deg"):
+        project_to_rti(n, a, 9, max_angle_deg=95)
+
+
+def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
+    """An RTI capture rendered by the library: sphere lights -> photometric stereo -> .rti + relight export."""
+    size = 20
+    n, m = scenes.sphere_normals(size, radius=0.9, dtype=torch.float64)
+    lights = scenes.cone_lights(16, max_angle_deg=60.0, seed=5, dtype=torch.float64)
+    one = torch.ones(size, size, 1, dtype=torch.float64)
+    obj = render(n, lights, BlinnPhong(0.7 * one.expand(-1, -1, 3), 0.2 * one, 15 * one)) * m[None, ..., None]
+    sph, _, sm = glossy_sphere(size * 2, lights=lights)
+    imgs = torch.zeros(len(lights), size * 2, size * 3, 3, dtype=torch.float64)  # object left, sphere right
+    imgs[:, size // 2: size // 2 + size, :size] = obj / obj.max()
+    imgs[:, :, size:] = 0.6 * sph / sph.max()
+    mask = torch.zeros(imgs.shape[1:3], dtype=torch.bool)
+    mask[size // 2: size // 2 + size, :size] = m
+    smask = torch.zeros_like(mask)
+    smask[:, size:] = sm
+    cap = save_rti(tmp_path / "cap", imgs, torch.tensor([[0.0, 0.0, 1.0]]).expand(len(lights), 3), mask=mask)
+    _write_png(tmp_path / "sphere.png", smask.numpy().astype(np.uint8) * 255)
+    (cap / "lights.lp").unlink()
+    (cap / "lights.lp").write_text("16\n" + "".join(f"img_{i + 1:03d}.png 0 0 1\n" for i in range(16)))
+    assert cli.main(["lights", str(cap), "--sphere-mask", str(tmp_path / "sphere.png"), "--out",
+                     str(cap / "lights.lp"), "--overwrite", "--quiet"]) == 0
+    assert float(angles(read_lp(cap / "lights.lp")[2], lights).max()) < 1.0
+    assert cli.main(["ps", "--data", str(cap), "--out", str(tmp_path / "res"), "--quiet", "--order", "2",
+                     "--materials", "0"]) == 0
+    assert cli.main(["rti", str(tmp_path / "res"), "--terms", "9", "--rti", str(tmp_path / "o.rti"),
+                     "--relight", str(tmp_path / "o_relight"), "--quiet"]) == 0
+    c, _ = read_rti_file(tmp_path / "o.rti")
+    c2, _ = read_relight(tmp_path / "o_relight")
+    assert c.shape == (size * 2, size * 3, 3, 9) and c2.shape == c.shape
+    front = viewer_relight(c, [0, 0, 1], RTIVIEWER_THETA_CLAMP)
+    assert front[mask.numpy()].mean() > 0.2 and np.abs(front[~mask.numpy()]).max() < 0.02
+    with pytest.raises(SystemExit) as e:
+        cli.main(["rti", str(tmp_path / "res"), "--terms", "16", "--relight", str(tmp_path / "x"), "--quiet"])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit) as e:
+        cli.main(["rti", str(tmp_path / "res"), "--max-angle", "120", "--rti", str(tmp_path / "z.rti"), "--quiet"])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit) as e:
+        cli.main(["rti", str(tmp_path / "nothing"), "--rti", str(tmp_path / "y.rti"), "--quiet"])
+    assert e.value.code == 1 and "nothing" in capsys.readouterr().err

@@ -72,6 +72,9 @@ def add_rti_commands(sub) -> None:
                    help="factor on the radiance before the sRGB curve (default: 99.5th percentile of the head-on "
                         "rendering maps to 0.8)")
     q.add_argument("--linear", action="store_true", help="store linear values instead of sRGB-encoded ones")
+    q.add_argument("--max-angle", default="auto",
+                   help="fit the lights within this many degrees of the view (default auto: the largest angle of the "
+                        "result's lights; 90: the whole hemisphere, an orthonormal projection)")
     q.add_argument("--overwrite", action="store_true", help="replace existing output files")
     _add_common(q)
     q.set_defaults(handler=_run_rti, parser=q)
@@ -189,6 +192,13 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
             ap.error(f"argument {opt}: {val} exists; pass --overwrite to replace it")
     if args.exposure is not None and not args.exposure > 0:
         ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
+    if args.max_angle != "auto":
+        try:
+            max_angle = float(args.max_angle)
+        except ValueError:
+            ap.error(f"argument --max-angle: expected 'auto' or a number of degrees, got {args.max_angle!r}")
+        if not 0 < max_angle <= 90:
+            ap.error(f"argument --max-angle: must be in (0, 90], got {args.max_angle}")
     src = Path(args.result)
     f = src / "result.npz" if src.is_dir() else src
     try:
@@ -204,7 +214,10 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         exposure = 0.8 / ref if ref > 0 else 1.0
     else:
         exposure = args.exposure
-    coeffs = project_to_rti(n, a, args.terms, mask=mask, exposure=exposure,
+    if args.max_angle == "auto":
+        lz = torch.nn.functional.normalize(res.lights.double(), dim=-1)[:, 2].clamp(-1, 1)
+        max_angle = min(90.0, float(torch.rad2deg(torch.arccos(lz)).max()))
+    coeffs = project_to_rti(n, a, args.terms, mask=mask, exposure=exposure, max_angle_deg=max_angle,
                             transfer="linear" if args.linear else "srgb")
     written = []
     if args.rti is not None:
@@ -213,6 +226,7 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     if args.relight is not None:
         save_relight(args.relight, coeffs, overwrite=args.overwrite)
         written.append(args.relight)
-    say(f"{args.terms}-term HSH RTI of {int(mask.sum())} pixels, exposure {exposure:.4g}, "
+    say(f"{args.terms}-term HSH RTI of {int(mask.sum())} pixels, lights within {max_angle:.1f} deg, "
+        f"exposure {exposure:.4g}, "
         f"{'linear' if args.linear else 'sRGB'} values; wrote {', '.join(written)}")
-    return {"exposure": exposure, "terms": args.terms, "written": written}
+    return {"exposure": exposure, "terms": args.terms, "max_angle_deg": max_angle, "written": written}
