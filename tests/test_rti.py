@@ -376,3 +376,19 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["rti", str(tmp_path / "nothing"), "--rti", str(tmp_path / "y.rti"), "--quiet"])
     assert e.value.code == 1 and "nothing" in capsys.readouterr().err
+
+
+def test_example_capture_and_lights_command(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "rti_capture.py"
+    spec = importlib.util.spec_from_file_location("rti_capture", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "cap"
+    mod.main(["--out", str(out), "--size", "48", "--lights", "12"])
+    assert cli.main(["lights", str(out), "--sphere-mask", str(out / "sphere_mask.png"), "--out",
+                     str(out / "lights.lp"), "--overwrite", "--quiet"]) == 0
+    true = torch.as_tensor(np.loadtxt(out / "true_lights.txt"))
+    assert float(angles(read_lp(out / "lights.lp")[2], true).max()) < 1.0
