@@ -65,7 +65,18 @@ def part_lights(size: int = 128, n: int = 48) -> None:
         print(f"| {name} | {a[0]:.2f} / {a[1]:.2f} | {b[0]:.2f} / {b[1]:.2f} |")
 
 
-def part_export(size: int, n_lights: int, holdout: int) -> None:
+def _strip(panels, gap: int = 3) -> np.ndarray:
+    """Panels (H, W, 3) in [0, 1] side by side with white gaps, as 8-bit codes."""
+    h = max(p.shape[0] for p in panels)
+    out = []
+    for i, p in enumerate(panels):
+        if i:
+            out.append(np.ones((h, gap, 3)))
+        out.append(np.pad(p, ((0, h - p.shape[0]), (0, 0), (0, 0)), constant_values=1.0))
+    return np.rint(np.clip(np.concatenate(out, axis=1), 0, 1) * 255).astype(np.uint8)
+
+
+def part_export(size: int, n_lights: int, holdout: int, figures=None) -> None:
     d = scenes.demo_scene(size, n_lights=n_lights, seed=0, dtype=torch.float64)
     imgs = d["images"] / d["intensities"][:, None, None, :]  # unit-intensity lights (RTI files carry none)
     mask = d["mask"]
@@ -96,15 +107,39 @@ def part_export(size: int, n_lights: int, holdout: int) -> None:
     print("| terms | fit region of the export | physical export | plain RTI fit of the photographs "
           "| export vs full model | export time (s) |")
     print("|---|---|---|---|---|---|")
+    maps = {}
     for terms in (9, 16):
-        plain = evaluate_rti(fit_rti(photos, data.lights, terms, mask=mask), lt)[:, mask]
+        plain_img = evaluate_rti(fit_rti(photos, data.lights, terms, mask=mask), lt)
+        plain = plain_img[:, mask]
         for region, angle in ((f"cap of the lights ({cap:.0f} deg)", cap), ("whole hemisphere", None)):
             t = time.perf_counter()
             c = project_to_rti(res.normals, res.coefficients, terms, mask=mask, exposure=1.0, max_angle_deg=angle)
             t_proj = time.perf_counter() - t
-            proj = evaluate_rti(c, lt)[:, mask]
+            proj_img = evaluate_rti(c, lt)
+            proj = proj_img[:, mask]
+            if terms == 9 and angle is not None:
+                maps["export"], maps["plain"] = proj_img, plain_img
             pf = 255 * float((proj - full).pow(2).mean().sqrt())
             print(f"| {terms} | {region} | {rms(proj):.2f} | {rms(plain):.2f} | {pf:.2f} | {t_proj:.0f} |")
+
+
+    if figures is not None:
+        from torch_hsh.io.diligent import _write_png
+
+        figures = Path(figures)
+        figures.mkdir(parents=True, exist_ok=True)
+        m3 = mask[..., None].numpy()
+        j = int(torch.argmax(torch.arccos(lt[:, 2])))  # the most oblique held-out light
+        cam = srgb(s * imgs[test[j]]).numpy()
+        nrm = np.where(m3, (res.normals.numpy() + 1) / 2, 1.0)
+        _write_png(figures / "rti_input_normals.png", _strip([np.where(m3, cam, 1.0), nrm]))
+        err = [srgb(res.relight(lt[j: j + 1]))[0], maps["export"][j], maps["plain"][j]]
+        panels = [np.where(m3, e.numpy(), 1.0) for e in err]
+        panels += [np.where(m3, np.repeat((8 * (e.numpy() - cam).__abs__().mean(-1, keepdims=True)), 3, -1), 1.0)
+                   for e in err]
+        _write_png(figures / "rti_relighting.png", _strip(panels))
+        print(f"\nfigures in {figures}: held-out light {j} at "
+              f"{float(torch.rad2deg(torch.arccos(lt[j, 2]))):.0f} deg")
 
 
 def main() -> None:
@@ -113,11 +148,12 @@ def main() -> None:
     ap.add_argument("--lights", type=int, default=64)
     ap.add_argument("--holdout", type=int, default=16)
     ap.add_argument("--skip-lights", action="store_true")
+    ap.add_argument("--figures", default=None, help="write rti_input_normals.png and rti_relighting.png here")
     a = ap.parse_args()
     torch.set_num_threads(2)
     if not a.skip_lights:
         part_lights()
-    part_export(a.size, a.lights, a.holdout)
+    part_export(a.size, a.lights, a.holdout, a.figures)
 
 
 if __name__ == "__main__":

@@ -199,3 +199,23 @@ def test_ps_cli_bad_rti_inputs_exit_1_naming_the_file(tmp_path, capsys, case, ms
     err = capsys.readouterr().err
     assert msg in err and "Traceback" not in err
     assert not (tmp_path / "res").exists()
+
+
+def test_read_image_grey_16bit_tiff_rgba_png_and_grey_jpeg(tmp_path):
+    from PIL import Image
+
+    from torch_hsh.io.diligent import _write_png
+
+    a16 = (np.arange(12, dtype=np.uint16).reshape(3, 4) * 5000)
+    Image.fromarray(a16).save(tmp_path / "g16.tif")
+    img, bits = read_image(tmp_path / "g16.tif")
+    assert bits == 16 and img.shape == (3, 4, 3)
+    np.testing.assert_allclose(img[..., 1], a16 / 65535.0)
+    rgba = np.zeros((2, 3, 4), np.uint8)
+    rgba[..., 0], rgba[..., 3] = 200, 17
+    _write_png(tmp_path / "a.png", rgba)
+    img, bits = read_image(tmp_path / "a.png")
+    assert bits == 8 and img.shape == (2, 3, 3) and abs(img[0, 0, 0] - 200 / 255) < 1e-12
+    Image.fromarray(np.full((4, 4), 128, np.uint8)).save(tmp_path / "g.jpg", quality=100)
+    img, bits = read_image(tmp_path / "g.jpg")
+    assert bits == 8 and img.shape == (4, 4, 3) and abs(img.mean() - 128 / 255) < 2 / 255
