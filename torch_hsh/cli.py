@@ -9,8 +9,8 @@ Subcommands:
   folder.
 * ``torch-hsh fit`` — project a MERL ``.binary`` BRDF onto the isotropic
   Helmholtz basis and write the coefficients (``.npz``) and a JSON summary.
-* ``torch-hsh lights`` / ``torch-hsh rti`` — RTI captures: light directions from a
-  glossy sphere, and the HSH RTI export of a result (see :mod:`torch_hsh.cli_rti`).
+* ``torch-hsh lights`` / ``rti`` / ``view`` — RTI captures: light directions from a
+  glossy sphere, the HSH RTI export and a WebGL2 viewer of a result (:mod:`torch_hsh.cli_rti`).
 
 Conventions: every argument and input file is checked before any folder is
 created and before the solve. A bad argument gets an argparse message and exit
@@ -732,7 +732,7 @@ def _run_fit(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
 # entry points
 # --------------------------------------------------------------------------- #
 def build_parser() -> argparse.ArgumentParser:
-    """The ``torch-hsh`` argument parser (subcommands ``ps``, ``fit``, ``lights`` and ``rti``)."""
+    """The ``torch-hsh`` argument parser (subcommands ``ps``, ``fit``, ``lights``, ``rti`` and ``view``)."""
     from . import __version__
 
     ap = argparse.ArgumentParser(prog=PROG, description="Helmholtz HSH BRDF tools (torch_hsh).")

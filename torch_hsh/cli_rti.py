@@ -5,6 +5,8 @@ r"""The RTI subcommands of ``torch-hsh`` (registered by :func:`torch_hsh.cli.bui
   (:func:`torch_hsh.rti.sphere_light_directions`). ``FOLDER`` is an RTI capture
   (photographs plus an ``.lp`` file, whose directions are ignored) or a
   DiLiGenT folder (``filenames.txt`` or its ``*.png`` images).
+* ``torch-hsh view RESULT --out RESULT.html`` -- a self-contained WebGL2 relighting viewer of
+  the full model (:func:`torch_hsh.viewer.write_viewer`).
 * ``torch-hsh rti RESULT --terms 9 [--rti OUT.rti] [--relight OUT_DIR]`` -- the
   HSH RTI export of a ``torch-hsh ps`` result (:func:`torch_hsh.rti.project_to_rti`,
   :func:`torch_hsh.io.rti.write_rti_hsh`, :func:`torch_hsh.io.rti.save_relight`).
@@ -27,7 +29,7 @@ from typing import Any, Dict, List, Tuple
 
 import numpy as np
 
-__all__ = ["add_rti_commands"]
+__all__ = ["add_rti_commands"]  # lights, rti, view
 
 
 def _float(text: str) -> float:
@@ -41,7 +43,7 @@ def _float(text: str) -> float:
 
 
 def add_rti_commands(sub) -> None:
-    """Add the ``lights`` and ``rti`` subparsers to the ``torch-hsh`` subparsers ``sub``."""
+    """Add the ``lights``, ``rti`` and ``view`` subparsers to the ``torch-hsh`` subparsers ``sub``."""
     from .cli import _add_common
 
     p = sub.add_parser(
@@ -78,6 +80,21 @@ def add_rti_commands(sub) -> None:
     q.add_argument("--overwrite", action="store_true", help="replace existing output files")
     _add_common(q)
     q.set_defaults(handler=_run_rti, parser=q)
+
+    v = sub.add_parser(
+        "view", help="write a self-contained HTML relighting viewer (WebGL2) of a torch-hsh ps result",
+        description="Write one HTML file (no network access; the maps are embedded) that relights the result "
+                    "with its per-pixel isotropic Helmholtz BRDF under a light that follows the mouse, and shows "
+                    "the normal map, the albedo, the confidence and the residual map.",
+    )
+    v.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
+    v.add_argument("--out", required=True, help="output .html file (refused if it exists unless --overwrite)")
+    v.add_argument("--exposure", type=_float, default=None,
+                   help="factor on the radiance before the sRGB curve (default: 99.5th percentile of the head-on "
+                        "rendering maps to 0.8)")
+    v.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    _add_common(v)
+    v.set_defaults(handler=_run_view, parser=v)
 
 
 # --------------------------------------------------------------------------- #
@@ -230,3 +247,33 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         f"exposure {exposure:.4g}, "
         f"{'linear' if args.linear else 'sRGB'} values; wrote {', '.join(written)}")
     return {"exposure": exposure, "terms": args.terms, "max_angle_deg": max_angle, "written": written}
+
+
+# --------------------------------------------------------------------------- #
+# view
+# --------------------------------------------------------------------------- #
+def _run_view(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
+    from .cli import InputError
+    from .ps import HSHResult
+    from .viewer import write_viewer
+
+    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+    out = Path(os.path.abspath(args.out))
+    if out.suffix.lower() not in (".html", ".htm"):
+        ap.error(f"argument --out: expected an .html file name, got {out.name}")
+    if out.exists() and not args.overwrite:
+        ap.error(f"argument --out: {out} exists; pass --overwrite to replace it")
+    if not out.parent.is_dir():
+        ap.error(f"argument --out: the folder {out.parent} does not exist")
+    if args.exposure is not None and not args.exposure > 0:
+        ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
+    src = Path(args.result)
+    f = src / "result.npz" if src.is_dir() else src
+    try:
+        res = HSHResult.load(f)
+    except (OSError, ValueError) as err:
+        raise InputError(str(err)) from err
+    exposure = write_viewer(out, res, exposure=args.exposure, title=f"torch_hsh: {src.name}", overwrite=args.overwrite)
+    size = out.stat().st_size
+    say(f"wrote {out} ({size / 2 ** 20:.1f} MiB, exposure {exposure:.4g})")
+    return {"exposure": exposure, "bytes": size}
