@@ -84,6 +84,7 @@ def test_screenshots_match_the_library_render(tmp_path):
         ref = srgb_encode(np.clip(exposure * res.relight(lt)[0].numpy(), 0, 1))
         d = (shot - ref)[m]
         assert np.sqrt((d ** 2).mean()) < 2 / 255, np.sqrt((d ** 2).mean()) * 255
+        assert shot[~m].max() == 0  # black outside the mask
         assert secs < 10  # the whole headless run, first frame included
     shot, _ = _shot(html, 40, 40, (0, 0, 1), "normals", tmp_path / "n.png")
     np.testing.assert_allclose(shot[m], (res.normals.numpy()[m] + 1) / 2, atol=1.5 / 255)

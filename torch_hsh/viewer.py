@@ -185,10 +185,12 @@ def write_viewer(path, result, exposure: Optional[float] = None, title: str = "t
             else np.ones((H, W)))
     resid = result.residual.detach().cpu().double().numpy()
     chans = np.concatenate([a.reshape(H, W, 3 * K).numpy(), (n.numpy() + 1) / 2, albedo, conf[..., None],
-                            resid[..., None]], axis=-1)
+                            resid[..., None], mask[..., None].astype(np.float64)], axis=-1)
     nl = -(-chans.shape[-1] // 4)
     chans = np.concatenate([chans, np.zeros((H, W, 4 * nl - chans.shape[-1]))], axis=-1)
     q, lo, span = _pack(chans, mask)
+    lo[3 * K + 8], span[3 * K + 8] = 0.0, 1.0  # the mask channel: 0 outside, 1 inside
+    q[..., 3 * K + 8] = np.where(mask, 65535, 0)
     # layer-major RGBA16UI texture array, rows bottom-up (WebGL's texture origin is the lower left)
     layers = q.reshape(H, W, nl, 4)[::-1].transpose(2, 0, 1, 3)
     blob = base64.b64encode(zlib.compress(np.ascontiguousarray(layers).astype("<u2").tobytes(), 6)).decode("ascii")
@@ -245,7 +247,7 @@ void main() {
   for (int i = 0; i < __NL__; i++) t[i] = texelFetch(tex, ivec3(px, i), 0);
   int K = __K__;
   vec3 n = vec3(ch(t, 3 * K), ch(t, 3 * K + 1), ch(t, 3 * K + 2)) * 2.0 - 1.0;
-  if (dot(n, n) < 0.25) { color = vec4(0.0, 0.0, 0.0, 1.0); return; }
+  if (ch(t, 3 * K + 8) < 0.5 || dot(n, n) < 0.25) { color = vec4(0.0, 0.0, 0.0, 1.0); return; }
   n = normalize(n);
   if (mode == 1) { color = vec4((n + 1.0) * 0.5, 1.0); return; }
   if (mode == 2) { color = vec4(srgb(exposure / 3.14159265 * vec3(ch(t, 3 * K + 3), ch(t, 3 * K + 4), ch(t, 3 * K + 5))), 1.0); return; }
