@@ -9,6 +9,8 @@ Subcommands:
   folder.
 * ``torch-hsh fit`` — project a MERL ``.binary`` BRDF onto the isotropic
   Helmholtz basis and write the coefficients (``.npz``) and a JSON summary.
+* ``torch-hsh lights`` / ``rti`` / ``view`` — RTI captures: light directions from a
+  glossy sphere, the HSH RTI export and a WebGL2 viewer of a result (:mod:`torch_hsh.cli_rti`).
 
 Conventions: every argument and input file is checked before any folder is
 created and before the solve. A bad argument gets an argparse message and exit
@@ -353,13 +355,19 @@ def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         d.update(images=d["images"][sel], lights=d["lights"][sel], intensities=d["intensities"][sel])
         return d
     from .io.diligent import load_diligent
+    from .io.rti import is_rti_folder, load_rti
 
     folder = Path(args.data)
-    if not folder.is_dir():
+    rti = is_rti_folder(folder)  # an RTI capture: *.lp + photographs (torch_hsh.io.rti)
+    if not folder.is_dir() and not rti:
         ap.error(f"argument --data: {folder} is not a folder")
     try:
-        ds = load_diligent(folder, dtype=torch.float32, normalize_intensities=True,
-                           drop_first=args.drop_first, max_images=args.max_images)
+        if rti:
+            ds = load_rti(folder, linear=args.linear, dtype=torch.float32, drop_first=args.drop_first,
+                          max_images=args.max_images)
+        else:
+            ds = load_diligent(folder, dtype=torch.float32, normalize_intensities=True,
+                               drop_first=args.drop_first, max_images=args.max_images)
     except ValueError as err:
         if "no images left" in str(err):
             ap.error(f"argument --drop-first/--max-images: {err}")
@@ -466,7 +474,10 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
         description="Photometric stereo with the isotropic Helmholtz HSH basis on a DiLiGenT-layout folder "
                     "or, without --data, on a built-in synthetic scene. Writes a result folder atomically.",
     )
-    p.add_argument("--data", default=None, help="DiLiGenT-layout object folder (default: synthetic scene)")
+    p.add_argument("--data", default=None, help="DiLiGenT-layout object folder, or an RTI capture (a folder with one "
+                                                "*.lp file and its photographs; default: synthetic scene)")
+    p.add_argument("--linear", action="store_true",
+                   help="RTI captures only: the photographs are already linear (default: remove the sRGB curve)")
     p.add_argument("--out", default="results/ps_demo", help="output folder (default results/ps_demo)")
     p.add_argument("--order", type=_int_in(0, 12), default=None,
                    help="HSH order (default torch_hsh.ps.DEFAULT_ORDER)")
@@ -721,7 +732,7 @@ def _run_fit(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
 # entry points
 # --------------------------------------------------------------------------- #
 def build_parser() -> argparse.ArgumentParser:
-    """The ``torch-hsh`` argument parser (subcommands ``ps`` and ``fit``)."""
+    """The ``torch-hsh`` argument parser (subcommands ``ps``, ``fit``, ``lights``, ``rti`` and ``view``)."""
     from . import __version__
 
     ap = argparse.ArgumentParser(prog=PROG, description="Helmholtz HSH BRDF tools (torch_hsh).")
@@ -730,6 +741,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     _ps_parser(sub)
     _fit_parser(sub)
+    from .cli_rti import add_rti_commands  # lights, rti (torch_hsh/cli_rti.py)
+
+    add_rti_commands(sub)
     return ap
 
 

@@ -1,0 +1,279 @@
+r"""The RTI subcommands of ``torch-hsh`` (registered by :func:`torch_hsh.cli.build_parser`).
+
+* ``torch-hsh lights FOLDER (--sphere-mask MASK.png | --sphere-circle CX CY R) --out LIGHTS.lp`` --
+  light directions from the highlight on a glossy sphere
+  (:func:`torch_hsh.rti.sphere_light_directions`). ``FOLDER`` is an RTI capture
+  (photographs plus an ``.lp`` file, whose directions are ignored) or a
+  DiLiGenT folder (``filenames.txt`` or its ``*.png`` images).
+* ``torch-hsh view RESULT --out RESULT.html`` -- a self-contained WebGL2 relighting viewer of
+  the full model (:func:`torch_hsh.viewer.write_viewer`).
+* ``torch-hsh rti RESULT --terms 9 [--rti OUT.rti] [--relight OUT_DIR]`` -- the
+  HSH RTI export of a ``torch-hsh ps`` result (:func:`torch_hsh.rti.project_to_rti`,
+  :func:`torch_hsh.io.rti.write_rti_hsh`, :func:`torch_hsh.io.rti.save_relight`).
+
+Exit status as for the other subcommands: 2 for a bad argument value (e.g. a
+circle outside the image), 1 for a bad input file (named), 0 on success.
+
+Example::
+
+    torch-hsh lights capture --sphere-circle 60 60 40 --out capture/lights.lp
+    torch-hsh rti results/capture --terms 9 --rti capture.rti --relight capture_relight
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+from typing import Any, Dict, List, Tuple
+
+import numpy as np
+
+__all__ = ["add_rti_commands"]  # lights, rti, view
+
+
+def _float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return v
+
+
+def add_rti_commands(sub) -> None:
+    """Add the ``lights``, ``rti`` and ``view`` subparsers to the ``torch-hsh`` subparsers ``sub``."""
+    from .cli import _add_common
+
+    p = sub.add_parser(
+        "lights", help="light directions from a glossy sphere (highlight RTI), written as an .lp file",
+        description="Estimate each image's light direction from the highlight on a glossy sphere in the frame "
+                    "(orthographic view along +z; x right, y up, z toward the camera) and write an .lp file.",
+    )
+    p.add_argument("folder", help="RTI capture folder (photographs + .lp; its directions are ignored) or DiLiGenT folder")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--sphere-mask", metavar="MASK", help="image marking the sphere (> 0 on the sphere)")
+    g.add_argument("--sphere-circle", nargs=3, type=_float, metavar=("CX", "CY", "R"),
+                   help="sphere circle in pixels: centre column, centre row (pixel centres at integers), radius")
+    p.add_argument("--out", required=True, help="output .lp file (refused if it exists unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    _add_common(p)
+    p.set_defaults(handler=_run_lights, parser=p)
+
+    q = sub.add_parser(
+        "rti", help="export a torch-hsh ps result as HSH RTI files (.rti for RTIViewer, relight/OpenLIME folder)",
+        description="Project the per-pixel image model of a torch-hsh ps result onto the RTI HSH basis "
+                    "(9 or 16 terms) and write RTIViewer's .rti and/or a relight/OpenLIME folder.",
+    )
+    q.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
+    q.add_argument("--terms", type=int, choices=(9, 16), default=9, help="number of HSH terms (default 9)")
+    q.add_argument("--rti", default=None, help="write this .rti file (RTIViewer HSH)")
+    q.add_argument("--relight", default=None, help="write this relight/OpenLIME folder (info.json + plane_*.jpg; 9 terms)")
+    q.add_argument("--exposure", type=_float, default=None,
+                   help="factor on the radiance before the sRGB curve (default: 99.5th percentile of the head-on "
+                        "rendering maps to 0.8)")
+    q.add_argument("--linear", action="store_true", help="store linear values instead of sRGB-encoded ones")
+    q.add_argument("--max-angle", default="auto",
+                   help="fit the lights within this many degrees of the view (default auto: the largest angle of the "
+                        "result's lights; 90: the whole hemisphere, an orthonormal projection)")
+    q.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    _add_common(q)
+    q.set_defaults(handler=_run_rti, parser=q)
+
+    v = sub.add_parser(
+        "view", help="write a self-contained HTML relighting viewer (WebGL2) of a torch-hsh ps result",
+        description="Write one HTML file (no network access; the maps are embedded) that relights the result "
+                    "with its per-pixel isotropic Helmholtz BRDF under a light that follows the mouse, and shows "
+                    "the normal map, the albedo, the confidence and the residual map.",
+    )
+    v.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
+    v.add_argument("--out", required=True, help="output .html file (refused if it exists unless --overwrite)")
+    v.add_argument("--exposure", type=_float, default=None,
+                   help="factor on the radiance before the sRGB curve (default: 99.5th percentile of the head-on "
+                        "rendering maps to 0.8)")
+    v.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    _add_common(v)
+    v.set_defaults(handler=_run_view, parser=v)
+
+
+# --------------------------------------------------------------------------- #
+# lights
+# --------------------------------------------------------------------------- #
+def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
+    """Image paths of an RTI or DiLiGenT folder and a description of where they came from."""
+    from .io.diligent import _is_aux_picture, _read_names
+    from .io.rti import find_lp, read_lp
+
+    lp = find_lp(folder)
+    if lp is not None:
+        _, paths, _ = read_lp(lp, check_directions=False)
+        return paths, str(lp)
+    names_file = folder / "filenames.txt"
+    if names_file.is_file():
+        return [folder / n for n in _read_names(names_file)], str(names_file)
+    names = sorted(p.name for p in folder.glob("*.png") if not _is_aux_picture(p.name))
+    if not names:
+        raise ValueError(f"{folder}: neither an RTI folder (*.lp) nor a DiLiGenT folder (filenames.txt or *.png)")
+    return [folder / n for n in names], f"{folder} (*.png)"
+
+
+def _run_lights(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
+    import torch
+
+    from .cli import InputError
+    from .io.rti import _read_mask, read_image, write_lp
+    from .rti import sphere_circle_from_mask, sphere_light_directions
+
+    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+    folder = Path(args.folder)
+    if not folder.is_dir():
+        ap.error(f"argument folder: {folder} is not a folder")
+    out = Path(os.path.abspath(args.out))
+    if out.suffix.lower() != ".lp":
+        ap.error(f"argument --out: expected an .lp file name, got {out.name}")
+    if out.is_dir():
+        ap.error(f"argument --out: {out} is a folder")
+    if out.exists() and not args.overwrite:
+        ap.error(f"argument --out: {out} exists; pass --overwrite to replace it")
+    if not out.parent.is_dir():
+        ap.error(f"argument --out: the folder {out.parent} does not exist")
+    if args.sphere_circle is not None and args.sphere_circle[2] < 3:
+        ap.error(f"argument --sphere-circle: the radius must be >= 3 pixels, got {args.sphere_circle[2]:g}")
+    try:
+        paths, source = _capture_paths(folder)
+        images = None
+        for i, f in enumerate(paths):
+            if not f.is_file():
+                raise FileNotFoundError(f"{source}: image {i + 1} not found: {f}")
+            img, _ = read_image(f)
+            if images is None:
+                images = np.empty((len(paths),) + img.shape[:2])
+            elif img.shape[:2] != images.shape[1:]:
+                raise ValueError(f"{f}: image size {img.shape[1]}x{img.shape[0]} (WxH) differs from the first "
+                                 f"image's {images.shape[2]}x{images.shape[1]} ({paths[0].name})")
+            images[i] = img.mean(axis=-1)
+        assert images is not None
+        H, W = images.shape[1:]
+        if args.sphere_mask is not None:
+            mpath = Path(args.sphere_mask)
+            if not mpath.is_file():
+                raise FileNotFoundError(f"{mpath}: sphere mask not found")
+            m = _read_mask(mpath, (H, W))
+            try:
+                circle = sphere_circle_from_mask(m)
+            except ValueError as err:
+                raise ValueError(f"{mpath}: {err}") from None
+        else:
+            circle = tuple(args.sphere_circle)
+            cx, cy, r = circle
+            if cx - r < -0.5 or cy - r < -0.5 or cx + r > W - 0.5 or cy + r > H - 0.5:
+                ap.error(f"argument --sphere-circle: the circle (cx={cx:g}, cy={cy:g}, r={r:g}) is not inside the "
+                         f"{W}x{H} images")
+        est = sphere_light_directions(torch.as_tensor(images), circle=circle, on_missing="keep")
+    except (OSError, ValueError) as err:
+        raise InputError(str(err)) from err
+    missing = np.nonzero(~est.found)[0]
+    if missing.size:
+        names = ", ".join(str(paths[i]) for i in missing[:3]) + (" ..." if missing.size > 3 else "")
+        raise InputError(f"no highlight found on the sphere in {missing.size} image(s): {names}")
+    rel = [os.path.relpath(p.resolve(), out.parent) for p in paths]
+    rel = [r if not r.startswith("..") else str(p.resolve()) for r, p in zip(rel, paths)]
+    write_lp(out, rel, est.lights, overwrite=args.overwrite)
+    elev = np.degrees(np.arccos(np.clip(est.lights[:, 2], -1, 1)))
+    say(f"sphere circle cx={circle[0]:.2f} cy={circle[1]:.2f} r={circle[2]:.2f}; {len(paths)} lights, "
+        f"angle from the view {elev.min():.1f} to {elev.max():.1f} deg; "
+        f"{int((est.saturated > 1).sum())} image(s) with a clipped highlight")
+    say(f"wrote {out}")
+    return {"lights": est.lights.tolist(), "circle": list(circle), "highlights": est.highlights.tolist()}
+
+
+# --------------------------------------------------------------------------- #
+# rti export
+# --------------------------------------------------------------------------- #
+def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
+    import torch
+
+    from .cli import InputError
+    from .io.rti import save_relight, write_rti_hsh
+    from .ps import HSHResult
+    from .rti import project_to_rti
+
+    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+    if args.rti is None and args.relight is None:
+        ap.error("give --rti OUT.rti and/or --relight OUT_DIR")
+    if args.relight is not None and args.terms != 9:
+        ap.error("argument --relight: relight/OpenLIME evaluate 9 HSH terms only; use --terms 9")
+    for opt, val in (("--rti", args.rti), ("--relight", args.relight)):
+        if val is not None and Path(val).exists() and not args.overwrite:
+            ap.error(f"argument {opt}: {val} exists; pass --overwrite to replace it")
+    if args.exposure is not None and not args.exposure > 0:
+        ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
+    if args.max_angle != "auto":
+        try:
+            max_angle = float(args.max_angle)
+        except ValueError:
+            ap.error(f"argument --max-angle: expected 'auto' or a number of degrees, got {args.max_angle!r}")
+        if not 0 < max_angle <= 90:
+            ap.error(f"argument --max-angle: must be in (0, 90], got {args.max_angle}")
+    src = Path(args.result)
+    f = src / "result.npz" if src.is_dir() else src
+    try:
+        res = HSHResult.load(f)
+    except (OSError, ValueError) as err:
+        raise InputError(str(err)) from err
+    mask = res.mask.bool()
+    n = res.normals.double()
+    a = res.coefficients.double()
+    if args.exposure is None:
+        head = res.relight(torch.tensor([[0.0, 0.0, 1.0]], dtype=n.dtype))[0][mask]
+        ref = float(torch.quantile(head.reshape(-1).float(), 0.995)) if head.numel() else 1.0
+        exposure = 0.8 / ref if ref > 0 else 1.0
+    else:
+        exposure = args.exposure
+    if args.max_angle == "auto":
+        lz = torch.nn.functional.normalize(res.lights.double(), dim=-1)[:, 2].clamp(-1, 1)
+        max_angle = min(90.0, float(torch.rad2deg(torch.arccos(lz)).max()))
+    coeffs = project_to_rti(n, a, args.terms, mask=mask, exposure=exposure, max_angle_deg=max_angle,
+                            transfer="linear" if args.linear else "srgb")
+    written = []
+    if args.rti is not None:
+        write_rti_hsh(args.rti, coeffs, overwrite=args.overwrite)
+        written.append(args.rti)
+    if args.relight is not None:
+        save_relight(args.relight, coeffs, overwrite=args.overwrite)
+        written.append(args.relight)
+    say(f"{args.terms}-term HSH RTI of {int(mask.sum())} pixels, lights within {max_angle:.1f} deg, "
+        f"exposure {exposure:.4g}, "
+        f"{'linear' if args.linear else 'sRGB'} values; wrote {', '.join(written)}")
+    return {"exposure": exposure, "terms": args.terms, "max_angle_deg": max_angle, "written": written}
+
+
+# --------------------------------------------------------------------------- #
+# view
+# --------------------------------------------------------------------------- #
+def _run_view(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
+    from .cli import InputError
+    from .ps import HSHResult
+    from .viewer import write_viewer
+
+    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+    out = Path(os.path.abspath(args.out))
+    if out.suffix.lower() not in (".html", ".htm"):
+        ap.error(f"argument --out: expected an .html file name, got {out.name}")
+    if out.exists() and not args.overwrite:
+        ap.error(f"argument --out: {out} exists; pass --overwrite to replace it")
+    if not out.parent.is_dir():
+        ap.error(f"argument --out: the folder {out.parent} does not exist")
+    if args.exposure is not None and not args.exposure > 0:
+        ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
+    src = Path(args.result)
+    f = src / "result.npz" if src.is_dir() else src
+    try:
+        res = HSHResult.load(f)
+    except (OSError, ValueError) as err:
+        raise InputError(str(err)) from err
+    exposure = write_viewer(out, res, exposure=args.exposure, title=f"torch_hsh: {src.name}", overwrite=args.overwrite)
+    size = out.stat().st_size
+    say(f"wrote {out} ({size / 2 ** 20:.1f} MiB, exposure {exposure:.4g})")
+    return {"exposure": exposure, "bytes": size}

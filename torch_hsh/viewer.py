@@ -1,0 +1,305 @@
+r"""A self-contained HTML relighting viewer of a photometric-stereo result (WebGL2).
+
+:func:`write_viewer` writes one HTML file with no network access: the per-pixel normals, the
+isotropic Helmholtz coefficient maps, the albedo, the confidence and the residual map are
+quantised to 16 bits, deflate-compressed and embedded (base64); the page inflates them with the
+browser's ``DecompressionStream`` and uploads them as an ``RGBA16UI`` texture array. A WebGL2
+fragment shader evaluates, per pixel, ``I(l) = max(0, sum_k a_k B_k(l, v, n) max(0, n . l))``
+with this library's isotropic Helmholtz basis ``B_k`` (the GLSL is generated from the same
+recurrence constants as :func:`torch_hsh.helmholtz_isotropic_world`, see
+:func:`glsl_isotropic_basis`), ``v = (0, 0, 1)``, and shows ``sRGB(min(1, exposure * I))`` -- the
+image :func:`torch_hsh.io.rti.srgb_encode` of ``exposure * HSHResult.relight(l)``.
+
+The light follows the mouse (drag on the image: ``x`` right, ``y`` up, ``z`` toward the viewer);
+buttons switch to the normal map, the albedo, the confidence and the residual map. The page reads
+``#light=x,y,z&mode=relit|normals|albedo|confidence|error`` from its URL (used by the tests, which
+screenshot it in headless Chromium).
+
+Example:
+    >>> from torch_hsh.viewer import write_viewer  # doctest: +SKIP
+    >>> write_viewer("result.html", HSHResult.load("results/capture/result.npz"))  # doctest: +SKIP
+"""
+from __future__ import annotations
+
+import base64
+import json
+import math
+import zlib
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import torch
+
+__all__ = ["glsl_isotropic_basis", "write_viewer", "default_exposure", "MODES"]
+
+MODES = ("relit", "normals", "albedo", "confidence", "error")
+
+
+def _basis_program(order: int) -> List[str]:
+    """Straight-line statements ``name = expr`` computing ``B0 .. B{K-1}`` from zi, zo, a, rho, sio."""
+    from .basis import _iso_gather, _polar_consts
+
+    diag, alpha, beta, col = _polar_consts(order)
+    i1, j1, i2, j2, qcol, g_scale = _iso_gather(order)
+    L = len(col)
+    P = order
+    st: List[str] = []
+    for side, z in (("Ri", "zi"), ("Ro", "zo")):
+        st.append(f"t{side} = 2.0 * {z} - 1.0")
+        offs = []
+        off = 0
+        for j in range(P + 1):
+            offs.append(off)
+            off += P + 1 - j
+        for m in range(P + 1):
+            st.append(f"{side}{offs[0] + m} = {diag[m]!r}")
+        for j in range(1, P + 1):
+            for m in range(P + 1 - j):
+                c = offs[j] + m
+                prev1 = f"{side}{offs[j - 1] + m}"
+                if j == 1:
+                    st.append(f"{side}{c} = ({alpha[0][m]!r}) * t{side} * {prev1}")
+                else:
+                    prev2 = f"{side}{offs[j - 2] + m}"
+                    st.append(f"{side}{c} = ({alpha[j - 1][m]!r}) * t{side} * {prev1} - ({beta[j - 1][m]!r}) * {prev2}")
+    st.append("G0 = 1.0")
+    if P >= 1:
+        st.append("a1 = sio * a")
+        st.append("r1 = sio * sio * rho")
+        st.append("G1 = a1")
+        for q in range(2, P + 1):
+            st.append(f"G{q} = 2.0 * a1 * G{q - 1} - r1 * G{q - 2}")
+    for c in range(L):
+        st.append(f"Rg{c} = Ro{c} * G{qcol[c]} * {g_scale[qcol[c]]!r}")
+    inv = 1.0 / math.sqrt(2.0)
+
+    def X(i):
+        return "0.0" if i == L else f"Ri{i}"
+
+    def Y(j):
+        return f"(Rg{j} * {inv!r})" if j < L else f"Rg{j - L}"
+
+    for k in range(len(i1)):
+        st.append(f"B{k} = {X(i1[k])} * {Y(j1[k])} + {X(i2[k])} * {Y(j2[k])}")
+    return st
+
+
+def glsl_isotropic_basis(order: int) -> str:
+    """GLSL function ``void hbasis(float zi, float zo, float a, float rho, float sio, out float B[K])``.
+
+    ``zi = n . l``, ``zo = n . v`` (clamped to ``[0, 1]``), ``a = l . v - zi zo``,
+    ``rho = (1 - zi^2)(1 - zo^2)``, ``sio = sqrt(zi / (1 + zi)) sqrt(zo / (1 + zo))``: the
+    arguments of the isotropic kernel of :mod:`torch_hsh.basis`; ``K = (P+1)(P+2)(P+3)/6``.
+
+    Example:
+        >>> "void hbasis" in glsl_isotropic_basis(2)
+        True
+    """
+    K = (order + 1) * (order + 2) * (order + 3) // 6
+    lines = [f"void hbasis(float zi, float zo, float a, float rho, float sio, out float B[{K}]) {{"]
+    declared = set()
+    for s in _basis_program(order):
+        name, expr = s.split(" = ", 1)
+        if name.startswith("B") and name[1:].isdigit():
+            lines.append(f"  B[{name[1:]}] = {_glsl_expr(expr)};")
+        else:
+            decl = "" if name in declared else "float "
+            declared.add(name)
+            lines.append(f"  {decl}{name} = {_glsl_expr(expr)};")
+    lines.append("}")
+    return "\n".join(lines)
+
+
+def _glsl_expr(expr: str) -> str:
+    """Python float reprs (``1.5``, ``2.0``, ``1e-05``) are valid GLSL float literals as they are."""
+    return expr
+
+
+def _eval_program(order: int, zi, zo, a, rho, sio) -> np.ndarray:
+    """The generated program evaluated in NumPy (tests: it must equal the library's basis)."""
+    env = {"zi": zi, "zo": zo, "a": a, "rho": rho, "sio": sio}
+    for s in _basis_program(order):
+        name, expr = s.split(" = ", 1)
+        env[name] = eval(expr, {}, env)  # noqa: S307 - our own generated arithmetic
+    K = (order + 1) * (order + 2) * (order + 3) // 6
+    return np.stack([np.broadcast_to(env[f"B{k}"], np.shape(zi)) for k in range(K)], axis=-1)
+
+
+def default_exposure(result) -> float:
+    """``0.8 / (99.5th percentile of the head-on relit image inside the mask)`` (as ``torch-hsh rti``)."""
+    m = result.mask.bool()
+    head = result.relight(torch.tensor([[0.0, 0.0, 1.0]], dtype=result.normals.dtype))[0][m]
+    ref = float(torch.quantile(head.reshape(-1).float(), 0.995)) if head.numel() else 1.0
+    return 0.8 / ref if ref > 0 else 1.0
+
+
+def _pack(channels: np.ndarray, mask: np.ndarray):
+    """(H, W, N) float -> uint16 codes per channel (lo, span over the mask) and the per-channel lo/span."""
+    v = channels[mask]
+    lo = v.min(axis=0) if v.size else np.zeros(channels.shape[-1])
+    span = (v.max(axis=0) - lo) if v.size else np.ones(channels.shape[-1])
+    span = np.where(span > 0, span, 1.0)
+    q = np.rint(np.clip((channels - lo) / span, 0, 1) * 65535).astype(np.uint16)
+    q[~mask] = 0
+    return q, lo, span
+
+
+def write_viewer(path, result, exposure: Optional[float] = None, title: str = "torch_hsh result",
+                 overwrite: bool = False, max_bytes: Optional[int] = 30 * 2 ** 20) -> float:
+    r"""Write the relighting viewer of an :class:`~torch_hsh.ps.HSHResult` as one HTML file.
+
+    Args:
+        path: target ``.html`` file (refused if it exists unless ``overwrite``).
+        result: an ``HSHResult`` over an ``(H, W)`` image (3 colour channels).
+        exposure: factor on the radiance before the sRGB curve (default
+            :func:`default_exposure`).
+        title: page title.
+        max_bytes: refuse to write a larger file (default 30 MiB); ``None``: no limit.
+
+    Returns:
+        The exposure used (the page shows ``sRGB(min(1, exposure * relight(l)))``).
+
+    Example:
+        >>> write_viewer("cat.html", HSHResult.load("results/cat/result.npz"))  # doctest: +SKIP
+        1.73
+    """
+    p = Path(path)
+    if p.exists() and not overwrite:
+        raise FileExistsError(f"{p} exists; pass overwrite=True to replace it")
+    n = result.normals.detach().cpu().double()
+    if n.dim() != 3:
+        raise ValueError(f"the viewer needs an (H, W) result, got normals of shape {tuple(n.shape)}")
+    a = result.coefficients.detach().cpu().double()
+    H, W, C, K = a.shape
+    if C != 3:
+        raise ValueError(f"the viewer shows RGB results, got {C} channels")
+    from .render import order_from_num_functions
+
+    order = order_from_num_functions(K)
+    mask = result.mask.detach().cpu().bool().numpy()
+    if exposure is None:
+        exposure = default_exposure(result)
+    albedo = result.albedo.detach().cpu().double().numpy() if result.albedo is not None else np.zeros((H, W, 3))
+    conf = (result.confidence.detach().cpu().double().numpy() if getattr(result, "confidence", None) is not None
+            else np.ones((H, W)))
+    resid = result.residual.detach().cpu().double().numpy()
+    chans = np.concatenate([a.reshape(H, W, 3 * K).numpy(), (n.numpy() + 1) / 2, albedo, conf[..., None],
+                            resid[..., None], mask[..., None].astype(np.float64)], axis=-1)
+    nl = -(-chans.shape[-1] // 4)
+    chans = np.concatenate([chans, np.zeros((H, W, 4 * nl - chans.shape[-1]))], axis=-1)
+    q, lo, span = _pack(chans, mask)
+    lo[3 * K + 8], span[3 * K + 8] = 0.0, 1.0  # the mask channel: 0 outside, 1 inside
+    q[..., 3 * K + 8] = np.where(mask, 65535, 0)
+    # layer-major RGBA16UI texture array, rows bottom-up (WebGL's texture origin is the lower left)
+    layers = q.reshape(H, W, nl, 4)[::-1].transpose(2, 0, 1, 3)
+    blob = base64.b64encode(zlib.compress(np.ascontiguousarray(layers).astype("<u2").tobytes(), 6)).decode("ascii")
+    rmax = float(resid[mask].max()) if mask.any() else 1.0
+    meta = {"width": W, "height": H, "layers": nl, "K": K, "order": order, "exposure": float(exposure),
+            "lo": [float(v) for v in lo], "span": [float(v) for v in span], "residual_max": rmax or 1.0}
+    html = _TEMPLATE.replace("__TITLE__", title).replace("__META__", json.dumps(meta)).replace(
+        "__DATA__", blob).replace("__BASIS__", glsl_isotropic_basis(order)).replace("__K__", str(K)).replace(
+        "__NL__", str(nl)).replace("__NCH__", str(4 * nl))
+    data = html.encode("utf-8")
+    if max_bytes is not None and len(data) > max_bytes:
+        raise ValueError(f"the viewer would be {len(data) / 2 ** 20:.1f} MiB, more than {max_bytes / 2 ** 20:.0f} MiB")
+    tmp = p.with_name(p.name + ".partial")
+    tmp.write_bytes(data)
+    tmp.replace(p)
+    return float(exposure)
+
+
+_TEMPLATE = r"""<!doctype html>
+<html><head><meta charset="utf-8"><title>__TITLE__</title>
+<style>body{margin:0;background:#000;color:#ddd;font:13px sans-serif}canvas{display:block;cursor:crosshair}
+#ui{padding:6px}button{margin-right:4px}</style></head>
+<body><canvas id="c"></canvas>
+<div id="ui"><button data-m="relit">relit</button><button data-m="normals">normals</button>
+<button data-m="albedo">albedo</button><button data-m="confidence">confidence</button>
+<button data-m="error">residual</button> <span id="info"></span></div>
+<script id="meta" type="application/json">__META__</script>
+<script id="data" type="application/octet-stream">__DATA__</script>
+<script>
+"use strict";
+const META = JSON.parse(document.getElementById('meta').textContent);
+const MODES = ['relit', 'normals', 'albedo', 'confidence', 'error'];
+const state = {light: [0, 0, 1], mode: 0};
+function parseHash() {
+  const h = new URLSearchParams(location.hash.slice(1));
+  if (h.get('light')) { const v = h.get('light').split(',').map(Number); const n = Math.hypot(...v); state.light = v.map(x => x / n); }
+  if (h.get('mode')) state.mode = Math.max(0, MODES.indexOf(h.get('mode')));
+}
+const VS = `#version 300 es
+in vec2 p; void main() { gl_Position = vec4(p, 0.0, 1.0); }`;
+const FS = `#version 300 es
+precision highp float; precision highp int; precision highp usampler2DArray;
+uniform usampler2DArray tex; uniform vec3 light; uniform int mode; uniform float exposure;
+uniform float lo[__NCH__]; uniform float span[__NCH__]; uniform float rmax;
+out vec4 color;
+__BASIS__
+float ch(uvec4 t[__NL__], int i) { uvec4 v = t[i / 4]; int j = i - 4 * (i / 4);
+  uint u = j == 0 ? v.x : (j == 1 ? v.y : (j == 2 ? v.z : v.w)); return lo[i] + span[i] * float(u) / 65535.0; }
+vec3 srgb(vec3 x) { x = clamp(x, 0.0, 1.0);
+  return mix(12.92 * x, 1.055 * pow(max(x, vec3(0.0031308)), vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), x)); }
+void main() {
+  ivec2 px = ivec2(gl_FragCoord.xy);
+  uvec4 t[__NL__];
+  for (int i = 0; i < __NL__; i++) t[i] = texelFetch(tex, ivec3(px, i), 0);
+  int K = __K__;
+  vec3 n = vec3(ch(t, 3 * K), ch(t, 3 * K + 1), ch(t, 3 * K + 2)) * 2.0 - 1.0;
+  if (ch(t, 3 * K + 8) < 0.5 || dot(n, n) < 0.25) { color = vec4(0.0, 0.0, 0.0, 1.0); return; }
+  n = normalize(n);
+  if (mode == 1) { color = vec4((n + 1.0) * 0.5, 1.0); return; }
+  if (mode == 2) { color = vec4(srgb(exposure / 3.14159265 * vec3(ch(t, 3 * K + 3), ch(t, 3 * K + 4), ch(t, 3 * K + 5))), 1.0); return; }
+  if (mode == 3) { color = vec4(vec3(ch(t, 3 * K + 6)), 1.0); return; }
+  if (mode == 4) { color = vec4(vec3(ch(t, 3 * K + 7) / rmax), 1.0); return; }
+  vec3 l = normalize(light);
+  float zi = dot(n, l), zo = clamp(n.z, 0.0, 1.0);
+  if (zi <= 0.0 || n.z <= 0.0) { color = vec4(srgb(vec3(0.0)), 1.0); return; }
+  zi = min(zi, 1.0);
+  float a = l.z - zi * zo, rho = (1.0 - zi * zi) * (1.0 - zo * zo);
+  float sio = sqrt(zi / (1.0 + zi)) * sqrt(zo / (1.0 + zo));
+  float B[__K__]; hbasis(zi, zo, a, rho, sio, B);
+  vec3 I = vec3(0.0);
+  for (int k = 0; k < __K__; k++) I += B[k] * vec3(ch(t, k), ch(t, K + k), ch(t, 2 * K + k));
+  color = vec4(srgb(exposure * max(I * zi, 0.0)), 1.0);
+}`;
+function shader(gl, type, src) { const s = gl.createShader(type); gl.shaderSource(s, src); gl.compileShader(s);
+  if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s)); return s; }
+async function main() {
+  parseHash();
+  const cv = document.getElementById('c'); cv.width = META.width; cv.height = META.height;
+  const gl = cv.getContext('webgl2', {preserveDrawingBuffer: true, antialias: false});
+  if (!gl) { document.getElementById('info').textContent = 'WebGL2 is not available'; return; }
+  const b64 = document.getElementById('data').textContent.trim();
+  const raw = Uint8Array.from(atob(b64), c => c.charCodeAt(0));
+  const buf = await new Response(new Blob([raw]).stream().pipeThrough(new DecompressionStream('deflate'))).arrayBuffer();
+  const data = new Uint16Array(buf);
+  const prog = gl.createProgram();
+  gl.attachShader(prog, shader(gl, gl.VERTEX_SHADER, VS)); gl.attachShader(prog, shader(gl, gl.FRAGMENT_SHADER, FS));
+  gl.linkProgram(prog); if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
+  gl.useProgram(prog);
+  const tex = gl.createTexture(); gl.bindTexture(gl.TEXTURE_2D_ARRAY, tex);
+  gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+  gl.texImage3D(gl.TEXTURE_2D_ARRAY, 0, gl.RGBA16UI, META.width, META.height, META.layers, 0, gl.RGBA_INTEGER, gl.UNSIGNED_SHORT, data);
+  gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MIN_FILTER, gl.NEAREST); gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+  const vb = gl.createBuffer(); gl.bindBuffer(gl.ARRAY_BUFFER, vb);
+  gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 3, -1, -1, 3]), gl.STATIC_DRAW);
+  const loc = gl.getAttribLocation(prog, 'p'); gl.enableVertexAttribArray(loc); gl.vertexAttribPointer(loc, 2, gl.FLOAT, false, 0, 0);
+  const U = name => gl.getUniformLocation(prog, name);
+  gl.uniform1i(U('tex'), 0); gl.uniform1fv(U('lo'), META.lo); gl.uniform1fv(U('span'), META.span);
+  gl.uniform1f(U('exposure'), META.exposure); gl.uniform1f(U('rmax'), META.residual_max);
+  function draw() { gl.viewport(0, 0, META.width, META.height); gl.uniform3fv(U('light'), state.light);
+    gl.uniform1i(U('mode'), state.mode); gl.drawArrays(gl.TRIANGLES, 0, 3);
+    document.getElementById('info').textContent = MODES[state.mode] + '  light ' + state.light.map(v => v.toFixed(3)).join(', '); }
+  function drag(e) { if (!(e.buttons & 1)) return; const r = cv.getBoundingClientRect();
+    let x = 2 * (e.clientX - r.left) / r.width - 1, y = 1 - 2 * (e.clientY - r.top) / r.height; const d = Math.hypot(x, y);
+    if (d > 0.999) { x *= 0.999 / d; y *= 0.999 / d; } state.light = [x, y, Math.sqrt(Math.max(0, 1 - x * x - y * y))]; state.mode = 0; draw(); }
+  cv.addEventListener('pointerdown', drag); cv.addEventListener('pointermove', drag);
+  for (const b of document.querySelectorAll('button')) b.onclick = () => { state.mode = MODES.indexOf(b.dataset.m); draw(); };
+  window.addEventListener('hashchange', () => { parseHash(); draw(); });
+  draw(); document.title = document.title + ' (ready)';
+}
+main().catch(e => { document.getElementById('info').textContent = 'error: ' + e.message; console.error(e); });
+</script></body></html>
+"""
