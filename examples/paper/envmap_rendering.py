@@ -40,8 +40,8 @@ Outputs (the script refuses to overwrite them without ``--overwrite``):
 * ``docs/tables/envmap_rendering.md``
 
 Run: ``python examples/paper/envmap_rendering.py [--envmaps ../shared/data/envmaps]``
-(the projections of the raw GGX need up to 2e8 BRDF evaluations each: about 10 minutes on two quiet
-cores, 30 or more on a loaded machine).
+(the converged P = 8 projections are slow: the raw GGX needs up to 2e8 BRDF evaluations, the
+Oren-Nayar Helmholtz fit n_theta = 210; that fit alone took 790 s on a 2-core machine at load 10).
 
 ``--quick`` (CI, a few seconds): built-in synthetic maps instead of the Poly Haven files (a sky with a
 small sun, and a smooth overcast sky), a 12 x 12 sphere, P = 2, small maps, and a fixed 12 x 64
