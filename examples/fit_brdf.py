@@ -11,6 +11,7 @@ The BRDF is a reciprocal, isotropic diffuse + normalised Blinn--Phong model
 
 Usage:
     python examples/fit_brdf.py [--order 8] [--shininess 20] [--samples 4000] [--basis helmholtz_isotropic]
+    python examples/fit_brdf.py --quick     # CI: order 4, 1000 samples, a few seconds
 """
 from __future__ import annotations
 
@@ -47,7 +48,10 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=4000, help="scattered samples for the least-squares fit")
     ap.add_argument("--basis", default="helmholtz_isotropic")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true", help="CI mode: --order 4 --samples 1000")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.order, args.samples = 4, 1000
 
     P = args.order
     f = blinn_phong(args.kd, args.ks, args.shininess)

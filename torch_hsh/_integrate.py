@@ -262,14 +262,19 @@ def adaptive(evaluate: Callable[[int, int], RuleResult], metric: Callable[[RuleR
         last[direction] = e
         if streak[direction] >= 3:
             info = _info(cur, used, e_phi + e_theta, False, history)
+            # only the changes of this direction: the n_phi refinements in between are a different sequence
+            mine = [h[3] for h in history if h[0] == direction][-(streak[direction] + 1):]
             raise ConvergenceError(
                 f"{what}: the integral appears divergent: refining n_{direction} does not shrink the change "
-                f"({', '.join(f'{h[3]:.3g}' for h in history[-3:])}). {divergence_hint}",
+                f"(successive n_{direction} refinements changed the result by "
+                f"{', '.join(f'{x:.3g}' for x in mine)}). {divergence_hint}",
                 estimate=e, result=cur, info=info)
 
+    need = 0
     while True:
         converged = False
-        if used + size(cur.n_theta, 2 * cur.n_phi) > max_evaluations:
+        need = size(cur.n_theta, 2 * cur.n_phi)
+        if used + need > max_evaluations:
             break
         fine = run(cur.n_theta, 2 * cur.n_phi)
         e_phi = metric(fine, cur)
@@ -278,7 +283,8 @@ def adaptive(evaluate: Callable[[int, int], RuleResult], metric: Callable[[RuleR
             cur = fine
             continue
         nt2 = int(math.ceil(1.5 * cur.n_theta))
-        if used + size(nt2, cur.n_phi) > max_evaluations:
+        need = size(nt2, cur.n_phi)
+        if used + need > max_evaluations:
             break
         fine_t = run(nt2, cur.n_phi)
         e_theta = metric(fine_t, cur)
@@ -293,9 +299,22 @@ def adaptive(evaluate: Callable[[int, int], RuleResult], metric: Callable[[RuleR
     est = sum(finite) if finite else float("inf")  # an unchecked direction adds nothing it could quantify
     info = _info(cur, used, est, converged, history)
     if not converged:
-        msg = (f"{what} did not reach tol={tol:g} within max_evaluations={max_evaluations} "
-               f"(error estimate {est:.3g} at n_theta={cur.n_theta}, n_phi={cur.n_phi}); raise max_evaluations, "
-               f"loosen tol, or pass strict=False to accept the estimate. {divergence_hint}")
+        # Say what failed: the test is per direction (each change <= tol / 2), so the sum of the two
+        # changes (the estimate) can be below tol while one direction still fails it.
+        failing = []
+        for d, e in (("phi", e_phi), ("theta", e_theta)):
+            if not math.isfinite(e):
+                failing.append(f"n_{d} was not yet checked at the last rule")
+            elif e > tol / 2:
+                failing.append(f"the last refinement of n_{d} changed the result by {e:.3g}, above tol/2 = {tol / 2:g}")
+        if not failing:  # cannot happen with the loop above; kept so the message is never empty
+            failing.append("the next refinement could not be afforded")
+        msg = (f"{what} did not converge within max_evaluations={max_evaluations}: "
+               f"{'; '.join(failing)} (each direction must change by at most tol/2 for tol={tol:g}). "
+               f"The next refinement of the rule n_theta={cur.n_theta}, n_phi={cur.n_phi} needs "
+               f"{need} evaluations, {max_evaluations - used} are left (error estimate of the returned rule, "
+               f"the sum of the last changes in both directions: {est:.3g}). Raise max_evaluations, loosen tol, "
+               f"or pass strict=False to accept the result with that estimate. {divergence_hint}")
         if strict:
             raise ConvergenceError(msg, estimate=est, result=cur, info=info)
         warnings.warn(msg, ConvergenceWarning, stacklevel=3)

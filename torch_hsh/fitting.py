@@ -390,8 +390,9 @@ def project(
         the column order of ``basis.evaluate``; with ``return_info``, ``(coeffs, info)``.
 
     Raises:
-        ConvergenceError: the estimate did not reach ``tol`` within the budget, or the
-            integral appears divergent (carries ``.estimate`` and ``.result``).
+        ConvergenceError: the budget ran out before every direction's last change was
+            ``<= tol / 2`` (the message says which direction failed), or the integral
+            appears divergent (carries ``.estimate`` and ``.result``).
 
     Example:
         >>> import math, torch, torch_hsh

@@ -3,7 +3,7 @@
 Each format lives in its own submodule, imported below in its own block
 (append new formats at the end of this file)::
 
-    torch_hsh.io.merl      MERL BRDF ``.binary`` tables (read_merl, write_merl, MERLBRDF, tabulate_merl)
+    torch_hsh.io.merl      MERL BRDF ``.binary`` tables (read_merl, write_merl, MERLBRDF, tabulate_merl, fit_merl)
     torch_hsh.io.diligent  DiLiGenT-layout photometric-stereo folders (load_diligent, save_diligent)
     torch_hsh.io.exr       OpenEXR images, image stacks, normal / coefficient maps, environment maps
     torch_hsh.io.rti       RTI captures: .lp light files and photographs (read_lp, write_lp, load_rti, save_rti)
@@ -20,9 +20,19 @@ Example:
 __all__ = []
 
 from . import merl  # noqa: E402,F401
-from .merl import MERL_SCALE, MERL_SHAPE, MERLBRDF, read_merl, tabulate_merl, write_merl  # noqa: E402,F401
+from .merl import (  # noqa: E402,F401
+    MERL_SCALE,
+    MERL_SHAPE,
+    MERLBRDF,
+    fit_merl,
+    merl_solid_angle_weights,
+    read_merl,
+    tabulate_merl,
+    write_merl,
+)
 
-__all__ += ["merl", "MERL_SCALE", "MERL_SHAPE", "MERLBRDF", "read_merl", "tabulate_merl", "write_merl"]
+__all__ += ["merl", "MERL_SCALE", "MERL_SHAPE", "MERLBRDF", "read_merl", "tabulate_merl", "write_merl", "fit_merl",
+            "merl_solid_angle_weights"]
 
 from . import diligent  # noqa: E402,F401
 from .diligent import *  # noqa: E402,F401,F403

@@ -54,6 +54,8 @@ __all__ = [
     "half_diff_coords",
     "half_diff_to_dirs",
     "merl_bin_centers",
+    "merl_solid_angle_weights",
+    "fit_merl",
 ]
 
 #: Bin counts ``(theta_h, theta_d, phi_d)`` of the published MERL tables.
@@ -607,3 +609,289 @@ def tabulate_merl(model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], s
                 block = torch.where(below, torch.full_like(block, UNMEASURED_RAW), block)
             raw[:, start:start + chunk] = block
     return MERLBRDF(raw, scale=s)
+
+
+# ----------------------------------------------------------------------------- fitting the table's samples
+
+#: Jacobian of the half/difference parameterisation times the phi_h integral (2 pi) and the phi_d fold (2):
+#: d(omega_i) d(omega_o) = 4 cos(theta_d) d(omega_h) d(omega_d).
+_HD_MEASURE = 4.0 * 2.0 * math.pi * 2.0
+
+
+def merl_solid_angle_weights(shape: Sequence[int] = MERL_SHAPE, n_sub: int = 4, dtype=torch.float64,
+                             device=None) -> torch.Tensor:
+    r"""Measure of :math:`\Omega_i\times\Omega_o` that each bin of a MERL table stands for.
+
+    In Rusinkiewicz coordinates
+    :math:`d\omega_i\,d\omega_o = 4\cos\theta_d\,d\omega_h\,d\omega_d`
+    (:math:`d\omega_h = \sin\theta_h\,d\theta_h\,d\phi_h`, the same for ``d``). An isotropic table
+    does not depend on :math:`\phi_h` (a factor :math:`2\pi`) and folds :math:`\phi_d` into
+    :math:`[0, \pi)` (the other half is the same pairs with ``wi`` and ``wo`` swapped: a factor 2).
+    So bin ``(i, j, k)`` has the weight
+
+    .. math::
+        w_{ijk} = 16\pi \int_{\theta_h \in \text{bin } i}\int_{\theta_d \in \text{bin } j}
+        \sin\theta_h\,\cos\theta_d\sin\theta_d\;
+        \bigl|\{\phi_d \in \text{bin } k : z_i \ge 0,\ z_o \ge 0\}\bigr|\,d\theta_d\,d\theta_h,
+
+    where both directions are above the horizon iff
+    :math:`|\cos\phi_d| \le \cot\theta_h\cot\theta_d` (the :math:`\phi_d` part is exact; the two
+    polar integrals use ``n_sub`` Gauss--Legendre nodes per bin). The ``theta_h`` bins are the
+    non-linear MERL bins (see :func:`merl_bin_centers`). The weights of all bins add up to
+    :math:`(2\pi)^2 = 4\pi^2`, the measure of :math:`\Omega_i\times\Omega_o`: they are the
+    quadrature weights that turn sums over the table into integrals over direction pairs.
+
+    Args:
+        shape: bin counts ``(N_th, N_td, N_pd)``.
+        n_sub: Gauss--Legendre nodes per bin and polar axis (>= 1).
+        dtype, device: of the result.
+
+    Returns:
+        ``(N_th, N_td, N_pd)`` non-negative weights (zero for bins entirely below the horizon).
+
+    Example:
+        >>> w = merl_solid_angle_weights((8, 8, 16))
+        >>> round(float(w.sum() / (4 * math.pi ** 2)), 4)   # the polar sub-rule resolves the horizon to ~4e-5
+        1.0
+    """
+    nh, nd, npd = _check_shape(shape, "shape")
+    if isinstance(n_sub, bool) or not isinstance(n_sub, int) or n_sub < 1:
+        raise ValueError(f"`n_sub` must be a positive integer, got {n_sub!r}")
+    from ..quadrature import gauss_legendre
+
+    f64 = torch.float64
+    x, wx = gauss_legendre(n_sub, 0.0, 1.0, dtype=f64)  # nodes on [0, 1]
+    half = math.pi / 2
+    eh = (torch.arange(nh + 1, dtype=f64) / nh) ** 2 * half  # theta_h bin edges (non-linear)
+    ed = torch.arange(nd + 1, dtype=f64) / nd * half
+    th = (eh[:-1, None] + (eh[1:] - eh[:-1])[:, None] * x).reshape(-1)  # (nh * n_sub,)
+    wth = ((eh[1:] - eh[:-1])[:, None] * wx).reshape(-1) * th.sin()
+    td = (ed[:-1, None] + (ed[1:] - ed[:-1])[:, None] * x).reshape(-1)
+    wtd = ((ed[1:] - ed[:-1])[:, None] * wx).reshape(-1) * td.sin() * td.cos()
+    ep = torch.arange(npd + 1, dtype=f64) / npd * math.pi
+    out = torch.empty(nh, nd, npd, dtype=f64)
+    step = max(1, (1 << 21) // (n_sub * n_sub * nd * npd))  # theta_h bins per block: bounded memory
+    for s in range(0, nh, step):
+        e = min(s + step, nh)
+        ths, wths = th[s * n_sub:e * n_sub], wth[s * n_sub:e * n_sub]
+        # allowed phi_d in [0, pi): [alpha, pi - alpha] with cos(alpha) = min(1, cot th cot td)
+        c = (ths.cos()[:, None] * td.cos()[None, :]) / (ths.sin()[:, None] * td.sin()[None, :]).clamp(min=1e-300)
+        alpha = torch.acos(c.clamp(max=1.0))[..., None]  # (r n_sub, nd n_sub, 1)
+        length = (torch.minimum(ep[1:], math.pi - alpha) - torch.maximum(ep[:-1], alpha)).clamp(min=0.0)
+        w = length * (wths[:, None] * wtd[None, :])[..., None]
+        out[s:e] = w.reshape(e - s, n_sub, nd, n_sub, npd).sum((1, 3)) * _HD_MEASURE
+    w = out
+    return w.to(dtype=dtype, device=device)
+
+
+def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[torch.Tensor] = None,
+             ridge: float = 0.0, grazing_cutoff: Optional[float] = None, chunk_size: int = 1 << 16,
+             progress: bool = False, return_info: bool = False):
+    r"""Fit an isotropic basis to a MERL table's own samples by weighted least squares.
+
+    A MERL file is a set of samples, one per bin, at the bin centres (:func:`merl_bin_centers`,
+    ``phi_h = 0``). This fits :math:`f \approx \sum_k a_k B_k` to them, minimising
+
+    .. math:: \sum_n w_n \bigl(y_n - \textstyle\sum_k a_k B_k(\omega_{i,n}, \omega_{o,n})\bigr)^2
+              + \text{ridge}\,\|a\|^2
+
+    per RGB channel, with the solid-angle weights :math:`w_n` of
+    :func:`merl_solid_angle_weights`. The weighted sum is a quadrature of the :math:`L^2` norm
+    over :math:`\Omega_i\times\Omega_o`, so the result approximates the projection (paper
+    Eq. 14) of the tabulated function and needs no quadrature of the function itself: sharp
+    and rough lobes cost the same. The basis is orthonormal and the weights add up to the
+    measure, so the normal matrix is close to the identity and ``ridge`` is relative to 1.
+
+    Only bins that are measured (``raw >= 0``, per channel), have a positive weight and whose
+    centre has both directions above the horizon take part. With ``grazing_cutoff = c`` the
+    fitted function is :math:`f\,1[\cos\theta_i \ge c, \cos\theta_o \ge c]` (samples beyond the
+    cutoff count as zero), the same convention as :func:`torch_hsh.fitting.project`; it removes
+    the grazing growth of raw microfacet models, which otherwise dominates the L2 error. The basis is evaluated once per sample, in chunks of ``chunk_size``
+    samples (memory ``O(chunk_size * K)``); the normal equations are accumulated in float64
+    and solved by Cholesky.
+
+    Args:
+        brdf: a :class:`MERLBRDF` or the path of a ``.binary`` file.
+        order: basis order ``P``.
+        basis: an **isotropic** basis name or object (the table is sampled at ``phi_h = 0``).
+        weights: ``(N_th, N_td, N_pd)`` sample weights >= 0 (default: the solid-angle weights).
+        ridge: Tikhonov strength >= 0.
+        grazing_cutoff: fit the table set to zero where ``cos theta_i`` or ``cos theta_o`` is below it.
+        chunk_size: samples per basis evaluation.
+        progress: show a tqdm bar (on stderr) over the samples.
+        return_info: also return the diagnostics dict.
+
+    Returns:
+        ``(3, K)`` float64 coefficients; with ``return_info``, ``(coeffs, info)`` where ``info``
+        holds, per channel ``(3,)`` unless noted:
+
+        * ``relative_error``: :math:`\|y - Aa\|_W / \|y\|_W`, the weighted relative L2 error on
+          the samples (a quadrature of the relative L2 error of the fit over direction pairs);
+        * ``relative_error_unweighted``: the same with every used sample weighted alike;
+        * ``relative_error_per_order`` ``(3, P + 1)``: ``relative_error`` of the least-squares fit
+          truncated to each order ``P' <= P`` (refitted from the same normal equations);
+        * ``energy``: :math:`\|y\|_W^2`; ``accuracy`` ``(3, P + 1)``: ``1 - relative_error_per_order**2``
+          (the sample analogue of Acc(P), Eq. 17);
+        * ``num_samples`` (used samples of the first channel), ``coverage`` (their weight over
+          :math:`4\pi^2`), ``condition`` (of the normal matrix), ``runtime_s``.
+
+    Raises:
+        TypeError / ValueError: bad arguments (each names the argument); ValueError when no
+        sample is usable or the normal equations are singular (pass ``ridge > 0``).
+
+    Example:
+        >>> from torch_hsh.brdf import Lambertian
+        >>> t = tabulate_merl(Lambertian(0.5), shape=(8, 8, 16))
+        >>> a, info = fit_merl(t, 2, return_info=True)
+        >>> round(float(a[0, 0]), 9), float(info["relative_error"].max()) < 1e-6   # a_0 = 2 rho
+        (1.0, True)
+    """
+    import time
+
+    from .._checks import check_tensor
+    from ..bases import get_basis
+
+    t0 = time.perf_counter()
+    if isinstance(brdf, (str, os.PathLike)):
+        brdf = read_merl(brdf)
+    if not isinstance(brdf, MERLBRDF):
+        raise TypeError(f"`brdf` must be a MERLBRDF or the path of a .binary file, got {type(brdf).__name__}")
+    b = get_basis(basis)
+    if not b.isotropic:
+        raise ValueError(f"`basis` must be isotropic (a MERL table is sampled at phi_h = 0), got '{b.name}'")
+    P = b.check_order(order)
+    if isinstance(ridge, bool) or not isinstance(ridge, (int, float)) or not math.isfinite(ridge) or ridge < 0:
+        raise ValueError(f"`ridge` must be a finite number >= 0, got {ridge!r}")
+    if grazing_cutoff is not None and (isinstance(grazing_cutoff, bool) or not isinstance(grazing_cutoff, (int, float))
+                                       or not 0.0 <= grazing_cutoff < 1.0):
+        raise ValueError(f"`grazing_cutoff` must be a number in [0, 1) (a cosine) or None, got {grazing_cutoff!r}")
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
+        raise ValueError(f"`chunk_size` must be a positive integer, got {chunk_size!r}")
+    shape = brdf.shape
+    dev = brdf.raw.device
+    f64 = torch.float64
+    if weights is None:
+        wgt = merl_solid_angle_weights(shape, device=dev)
+    else:
+        check_tensor(weights, "weights")
+        if tuple(weights.shape) != shape:
+            raise ValueError(f"`weights` must have the table's shape {shape}, got {tuple(weights.shape)}")
+        wgt = weights.to(device=dev, dtype=f64)
+        if not bool(torch.isfinite(wgt).all()) or bool((wgt < 0).any()):
+            raise ValueError("`weights` must be finite and >= 0")
+    table = brdf.table.to(f64)  # (3, nh, nd, npd)
+    measured = brdf.measured
+    shared = bool((measured == measured[:1]).all())  # one normal matrix for all channels
+    nh, nd, npd = shape
+    K = b.num_functions(P)
+    G = torch.zeros(1 if shared else 3, K, K, dtype=f64, device=dev)
+    Gu = torch.zeros_like(G)
+    rhs = torch.zeros(3, K, dtype=f64, device=dev)
+    rhsu = torch.zeros_like(rhs)
+    yy = torch.zeros(3, dtype=f64, device=dev)
+    yyu = torch.zeros(3, dtype=f64, device=dev)
+    wsum = torch.zeros(3, dtype=f64, device=dev)
+    nused = torch.zeros(3, dtype=torch.long, device=dev)
+    # Every isotropic reciprocal basis function takes the same value at phi_d and pi - phi_d (a mirror
+    # of both directions, then wi <-> wo), and the bins k and N_pd - 1 - k are mirror images: the basis
+    # is evaluated on half of the phi_d bins and each pair of bins is summed with its own weights.
+    half = (npd + 1) // 2
+    lo = torch.arange(half, device=dev)
+    hi = npd - 1 - lo
+    pair = (hi != lo).to(f64)  # 0 for the middle bin of an odd N_pd (its own mirror)
+    th_c, td_c, pd_c = merl_bin_centers(shape, dtype=f64, device=dev)
+    rows = max(1, chunk_size // (nd * half))
+    bar = None
+    if progress:
+        import sys
+
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=nh * nd * npd, desc=f"fit_merl P={P}", unit="sample", unit_scale=True, file=sys.stderr)
+    try:
+        for s in range(0, nh, rows):
+            sl = slice(s, min(s + rows, nh))
+            TH, TD, PD = torch.meshgrid(th_c[sl], td_c, pd_c, indexing="ij")
+            # min(cos theta_i, cos theta_o) = cos th cos td - sin th sin td |cos pd| (see half_diff_to_dirs)
+            zmin = TH.cos() * TD.cos() - TH.sin() * TD.sin() * PD.cos().abs()
+            w = wgt[sl]  # (r, nd, npd)
+            y = table[:, sl]  # (3, r, nd, npd)
+            m = measured[:, sl] & (w > 0)[None] & (zmin >= 0.0)[None]
+            if grazing_cutoff is not None:  # f set to zero beyond the cutoff, as in fitting.project
+                y = torch.where((zmin >= float(grazing_cutoff))[None], y, torch.zeros_like(y))
+            y = torch.where(m, y, torch.zeros_like(y))
+            mf = m.to(f64)
+            yy += (y * y * w).sum((1, 2, 3))
+            yyu += (y * y).sum((1, 2, 3))
+            wsum += (mf * w).sum((1, 2, 3))
+            nused += m.sum((1, 2, 3))
+
+            def fold(t):  # (..., npd) -> (..., half): bin k plus its mirror N_pd - 1 - k
+                return t.index_select(-1, lo) + t.index_select(-1, hi) * pair
+
+            wm = fold(mf * w).reshape(3, -1)  # (3, n) weights of the half-grid samples
+            um = fold(mf).reshape(3, -1)
+            yw = fold(y * w).reshape(3, -1)
+            yu = fold(y).reshape(3, -1)
+            use = (um > 0).any(0)
+            if bool(use.any()):
+                idx = use.nonzero().squeeze(-1)
+                wi, wo = half_diff_to_dirs(TH[..., :half], torch.zeros_like(TH[..., :half]), TD[..., :half],
+                                           PD[..., :half])
+                A = b.evaluate(wi.reshape(-1, 3)[idx], wo.reshape(-1, 3)[idx], P).to(f64)  # (n, K)
+                for c in range(G.shape[0]):
+                    G[c] += A.T @ (A * wm[c, idx, None])
+                    Gu[c] += A.T @ (A * um[c, idx, None])
+                rhs += yw[:, idx] @ A
+                rhsu += yu[:, idx] @ A
+            if bar is not None:
+                bar.update((sl.stop - sl.start) * nd * npd)
+    finally:
+        if bar is not None:
+            bar.close()
+    if bool((nused == 0).any()):
+        raise ValueError("no usable sample in the table (every bin is unmeasured, has zero weight or lies below "
+                         "the horizon)")
+    Gs = G.expand(3, K, K)
+    eye = torch.eye(K, dtype=f64, device=dev)
+    orders = b.function_orders(P).to(dev)
+
+    def solve(sel):
+        Gk = Gs[:, sel][:, :, sel] + ridge * eye[: int(sel.sum()), : int(sel.sum())]
+        L, bad = torch.linalg.cholesky_ex(Gk)
+        d = torch.diagonal(L, dim1=-2, dim2=-1).abs() if not bool(bad.any()) else None
+        cond = float(((d.max(-1).values / d.min(-1).values.clamp(min=1e-300)) ** 2).max()) if d is not None else math.inf
+        if d is None or cond > 1e12:
+            raise ValueError(
+                f"the normal equations of the order-{int(orders[sel].max())} fit are singular or ill-conditioned "
+                f"(condition {cond:.3g}): the {int(nused.min())} usable samples do not determine the {int(sel.sum())} "
+                f"functions; pass ridge > 0 (on the command line: --ridge, e.g. 1e-6) or lower the order")
+        a = torch.cholesky_solve(rhs[:, sel, None], L)[..., 0]  # (3, k)
+        return a, cond
+
+    def rel(a, sel, Gm, r, n2):
+        Gk = Gm.expand(3, K, K)[:, sel][:, :, sel]
+        res = n2 - 2 * (a * r[:, sel]).sum(-1) + torch.einsum("ck,ckl,cl->c", a, Gk, a)
+        return torch.sqrt(res.clamp(min=0.0) / n2.clamp(min=1e-300))
+
+    per_order = torch.zeros(3, P + 1, dtype=f64, device=dev)
+    coeffs, cond = solve(torch.ones(K, dtype=torch.bool, device=dev))
+    full = torch.ones(K, dtype=torch.bool, device=dev)
+    for p in range(P + 1):
+        sel = orders <= p
+        a_p = coeffs if p == P else solve(sel)[0]
+        per_order[:, p] = rel(a_p, sel, G, rhs, yy)
+    if not return_info:
+        return coeffs
+    info = {
+        "relative_error": per_order[:, P].clone(),
+        "relative_error_unweighted": rel(coeffs, full, Gu, rhsu, yyu),
+        "relative_error_per_order": per_order,
+        "energy": yy,
+        "accuracy": 1.0 - per_order ** 2,
+        "num_samples": int(nused[0]),
+        "coverage": float(wsum[0] / (4 * math.pi ** 2)),
+        "condition": cond,
+        "runtime_s": time.perf_counter() - t0,
+    }
+    return coeffs, info
