@@ -458,7 +458,10 @@ def _iso_cosines_flat(zi: torch.Tensor, zo: torch.Tensor, cd: torch.Tensor, orde
     return _iso_kernel_t(*_iso_cosines_geom(zi, zo, cd), order)
 
 
-def _iso_cosines_geom(zi: torch.Tensor, zo: torch.Tensor, cd: torch.Tensor):
+_Geom = Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _iso_cosines_geom(zi: torch.Tensor, zo: torch.Tensor, cd: torch.Tensor) -> _Geom:
     """(zi, zo, a, rho, sio, valid) of the isotropic triple (flat (N,) inputs)."""
     valid = (zi >= 0) & (zo >= 0) & (zi <= 1) & (zo <= 1)
     zi_c = zi.clamp(0.0, 1.0)
@@ -475,7 +478,7 @@ def _iso_world_flat(wi: torch.Tensor, wo: torch.Tensor, nrm: torch.Tensor, order
     return _iso_kernel_t(*_iso_world_geom(wi, wo, nrm), order)
 
 
-def _iso_world_geom(wi: torch.Tensor, wo: torch.Tensor, nrm: torch.Tensor):
+def _iso_world_geom(wi: torch.Tensor, wo: torch.Tensor, nrm: torch.Tensor) -> _Geom:
     """(zi, zo, a, rho, sio, valid) of world-space directions and normals (flat (N, 3) inputs)."""
     wi = _normalize3(wi)
     wo = _normalize3(wo)
@@ -637,7 +640,7 @@ def _sphericart_module():
     """``sphericart.torch`` or None (the import is tried once)."""
     if "mod" not in _SPHERICART:
         try:
-            import sphericart.torch as sct  # type: ignore[import-not-found]
+            import sphericart.torch as sct
 
             _SPHERICART["mod"], _SPHERICART["error"] = sct, None
         except Exception as exc:  # not installed, or built for another torch
@@ -930,7 +933,7 @@ def _hsh_sphericart(d: torch.Tensor, order: int) -> torch.Tensor:
     """HSH of flat (N, 3) directions through sphericart: ``sqrt(2) sign_k Y_k(d')``, ``(N, K)``."""
     calc = _SPH_CALC.get(order)
     if calc is None:
-        calc = _SPH_CALC[order] = _sphericart_module().SphericalHarmonics(order)  # type: ignore[attr-defined]
+        calc = _SPH_CALC[order] = _sphericart_module().SphericalHarmonics(order)
     if _native_ok(d):
         dp, valid = _Remap.apply(d)
     else:

@@ -154,7 +154,7 @@ def parallel_rows(fn: Callable[..., int], n: int, *args) -> None:
         codes = [fn(0, n, *args)]
     else:
         # a pool inherited through fork() has no threads in the child: make a new one there
-        if _pool is None or _pool._max_workers < nt or _state.get("pool_pid") != os.getpid():  # type: ignore[attr-defined]
+        if _pool is None or _pool._max_workers < nt or _state.get("pool_pid") != os.getpid():
             _pool = ThreadPoolExecutor(max_workers=max(nt, os.cpu_count() or 1), thread_name_prefix="torch_hsh")
             _state["pool_pid"] = os.getpid()
         step = -(-n // nt)
