@@ -121,3 +121,25 @@ def test_diligent_size_file_is_under_30_mb(tmp_path):
                     lights=torch.eye(3), runtime_s=0.0)
     write_viewer(tmp_path / "d.html", res, exposure=1.0)
     assert (tmp_path / "d.html").stat().st_size < 30 * 2 ** 20
+
+
+@needs_chromium
+def test_first_frame_times_are_recorded(tmp_path):
+    """The page records when its first frame is drawn on ``document.body`` (read here with ``--dump-dom``;
+    ``--virtual-time-budget`` stops the page's clock while it waits, so only the order of the stages and the
+    time origin are checked: the real times come from ``benchmarks/bench_viewer.py``)."""
+    import re
+
+    html = tmp_path / "v.html"
+    write_viewer(html, _result(24))
+    t0 = time.time()
+    out = subprocess.run([CHROMIUM, "--headless=new", "--no-sandbox", "--enable-unsafe-swiftshader",
+                          "--use-angle=swiftshader", "--virtual-time-budget=5000", "--dump-dom", html.as_uri()],
+                         capture_output=True, text=True, timeout=120, check=True).stdout
+    body = re.search(r"<body[^>]*>", out)
+    assert body, out[:2000]
+    ds = {k: float(v) for k, v in re.findall(r'data-([a-z0-9-]+)="([^"]*)"', body.group(0))}
+    assert set(ds) == {"script-ms", "base64-ms", "decoded-ms", "first-frame-ms", "time-origin"}, body.group(0)
+    assert 0 < ds["script-ms"] <= ds["base64-ms"] <= ds["decoded-ms"] <= ds["first-frame-ms"], ds
+    assert t0 - 1 < ds["time-origin"] / 1000 < time.time(), (t0, ds)  # navigation started after the launch
+
