@@ -137,10 +137,10 @@ def section_bases(args, device, backend: str, results: List[dict]) -> None:
             K = torch_hsh.num_isotropic(P) if name == "isotropic" else torch_hsh.num_anisotropic(P)
             a = torch.randn(args.pairs, K, device=device)
             b = torch.randn(args.pairs, K, device=device)
-            t_mul = timeit(lambda: a * b, args.repeats, args.warmup, device)
+            t_mul = timeit(lambda a=a, b=b: a * b, args.repeats, args.warmup, device)
             del a, b
-            t_f = timeit(fwd(lambda x, y, P=P: fn(x, y, P), wi, wo), args.repeats, args.warmup, device)
-            t_fb = timeit(fwd_bwd(lambda x, y, P=P: fn(x, y, P), wi, wo), args.repeats, args.warmup, device)
+            t_f = timeit(fwd(lambda x, y, P=P, fn=fn: fn(x, y, P), wi, wo), args.repeats, args.warmup, device)
+            t_fb = timeit(fwd_bwd(lambda x, y, P=P, fn=fn: fn(x, y, P), wi, wo), args.repeats, args.warmup, device)
             print(f"{name:>11} {P:>2} {K:>5} {ms(t_mul)} {ms(t_f)} {ms(t_fb)} {t_f / t_mul:8.2f} {t_fb / t_mul:7.2f}",
                   flush=True)
             results.append(dict(backend=backend, kind=name, order=P, mul=t_mul, fwd=t_f, fwd_bwd=t_fb))
@@ -156,7 +156,7 @@ def section_training(args, device, backend: str, results: List[dict]) -> None:
         wi, wo = hemi(batch, device), hemi(batch, device)
         target = torch.rand(batch, 3, device=device)
 
-        def step() -> None:
+        def step(opt=opt, model=model, wi=wi, wo=wo, target=target) -> None:
             opt.zero_grad(set_to_none=True)
             loss = torch.mean((model(wi, wo) - target) ** 2)
             loss.backward()
