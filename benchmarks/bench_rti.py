@@ -11,11 +11,14 @@ the full model, its 9/16-term HSH RTI projection (:func:`torch_hsh.rti.project_t
 plain RTI fit of the photographs (:func:`torch_hsh.rti.fit_rti`). Errors are RMS in 8-bit codes.
 
 Run: ``OMP_NUM_THREADS=2 python benchmarks/bench_rti.py [--size 96] [--lights 64] [--holdout 16]``
-(about a minute at the defaults on 2 cores).
+(about a minute at the defaults on 2 cores). ``--quick`` (the CI run, ``tests/test_bench_rti_quick.py``):
+a 64 x 64 sphere under 16 lights, and the demo scene at 32 x 32 with 24 lights (16 training, 8
+held out), on one thread, a few seconds. Every measurement prints its line as soon as it is made.
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import tempfile
 import time
 from pathlib import Path
@@ -28,6 +31,8 @@ from torch_hsh.brdf import BlinnPhong
 from torch_hsh.io.rti import load_rti, save_rti, srgb_encode
 from torch_hsh.render import render
 from torch_hsh.rti import evaluate_rti, fit_rti, project_to_rti, sphere_light_directions
+
+print = functools.partial(print, flush=True)  # a line per measurement as it is made, also into a pipe
 
 
 def srgb(x: torch.Tensor) -> torch.Tensor:
@@ -77,6 +82,8 @@ def _strip(panels, gap: int = 3) -> np.ndarray:
 
 
 def part_export(size: int, n_lights: int, holdout: int, figures=None) -> None:
+    print(f"\n### Held-out relighting, demo scene {size}x{size}, {n_lights - holdout} training / {holdout} held-out "
+          f"lights (RMS in 8-bit sRGB codes)\n")
     d = scenes.demo_scene(size, n_lights=n_lights, seed=0, dtype=torch.float64)
     imgs = d["images"] / d["intensities"][:, None, None, :]  # unit-intensity lights (RTI files carry none)
     mask = d["mask"]
@@ -98,8 +105,6 @@ def part_export(size: int, n_lights: int, holdout: int, figures=None) -> None:
     def rms(x):
         return 255 * float((x - truth).pow(2).mean().sqrt())
 
-    print(f"\n### Held-out relighting, demo scene {size}x{size}, {n_lights - holdout} training / {holdout} held-out "
-          f"lights (RMS in 8-bit sRGB codes)\n")
     print(f"photometric stereo: {t_ps:.1f} s, mean normal error "
           f"{float(ps.angular_error(res.normals, d['normals_gt'])[mask].mean()):.2f} deg")
     print(f"\nfull HSH model (the viewer's shader): {rms(full):.2f}\n")
@@ -120,7 +125,7 @@ def part_export(size: int, n_lights: int, holdout: int, figures=None) -> None:
             if terms == 9 and angle is not None:
                 maps["export"], maps["plain"] = proj_img, plain_img
             pf = 255 * float((proj - full).pow(2).mean().sqrt())
-            print(f"| {terms} | {region} | {rms(proj):.2f} | {rms(plain):.2f} | {pf:.2f} | {t_proj:.0f} |")
+            print(f"| {terms} | {region} | {rms(proj):.2f} | {rms(plain):.2f} | {pf:.2f} | {t_proj:.1f} |")
 
 
     if figures is not None:
@@ -144,15 +149,24 @@ def part_export(size: int, n_lights: int, holdout: int, figures=None) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=96)
-    ap.add_argument("--lights", type=int, default=64)
-    ap.add_argument("--holdout", type=int, default=16)
+    ap.add_argument("--size", type=int, default=None, help="demo scene side (default 96; 32 with --quick)")
+    ap.add_argument("--lights", type=int, default=None, help="demo scene lights (default 64; 24 with --quick)")
+    ap.add_argument("--holdout", type=int, default=None, help="held-out lights (default 16; 8 with --quick)")
     ap.add_argument("--skip-lights", action="store_true")
     ap.add_argument("--figures", default=None, help="write rti_input_normals.png and rti_relighting.png here")
+    ap.add_argument("--quick", action="store_true",
+                    help="the CI run: a 64x64 sphere under 16 lights; the demo scene at 32x32 with 24 lights, "
+                         "8 held out (unless given); one thread")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default 2; 1 with --quick)")
     a = ap.parse_args()
-    torch.set_num_threads(2)
+    for k, full, quick in (("size", 96, 32), ("lights", 64, 24), ("holdout", 16, 8)):
+        if getattr(a, k) is None:
+            setattr(a, k, quick if a.quick else full)
+    # one thread in CI: two OpenMP threads on two cores shared with other jobs made the quick
+    # solve 30x slower (26 s instead of 1 s)
+    torch.set_num_threads(a.threads or (1 if a.quick else 2))
     if not a.skip_lights:
-        part_lights()
+        part_lights(*((64, 16) if a.quick else (128, 48)))
     part_export(a.size, a.lights, a.holdout, a.figures)
 
 

@@ -121,3 +121,49 @@ def test_diligent_size_file_is_under_30_mb(tmp_path):
                     lights=torch.eye(3), runtime_s=0.0)
     write_viewer(tmp_path / "d.html", res, exposure=1.0)
     assert (tmp_path / "d.html").stat().st_size < 30 * 2 ** 20
+
+
+@needs_chromium
+def test_first_frame_times_are_recorded(tmp_path):
+    """The page records when its first frame is drawn on ``document.body`` (read here with ``--dump-dom``;
+    ``--virtual-time-budget`` stops the page's clock while it waits, so only the order of the stages and the
+    time origin are checked: the real times come from ``benchmarks/bench_viewer.py``)."""
+    import re
+
+    html = tmp_path / "v.html"
+    write_viewer(html, _result(24))
+    t0 = time.time()
+    out = subprocess.run([CHROMIUM, "--headless=new", "--no-sandbox", "--enable-unsafe-swiftshader",
+                          "--use-angle=swiftshader", "--virtual-time-budget=5000", "--dump-dom", html.as_uri()],
+                         capture_output=True, text=True, timeout=120, check=True).stdout
+    body = re.search(r"<body[^>]*>", out)
+    assert body, out[:2000]
+    ds = {k: float(v) for k, v in re.findall(r'data-([a-z0-9-]+)="([^"]*)"', body.group(0))}
+    assert set(ds) == {"script-ms", "base64-ms", "decoded-ms", "first-frame-ms", "time-origin"}, body.group(0)
+    assert 0 < ds["script-ms"] <= ds["base64-ms"] <= ds["decoded-ms"] <= ds["first-frame-ms"], ds
+    assert t0 - 1 < ds["time-origin"] / 1000 < time.time(), (t0, ds)  # navigation started after the launch
+
+
+@needs_chromium
+@pytest.mark.slow
+def test_bench_viewer_quick():
+    """``benchmarks/bench_viewer.py --quick``: a line per browser run as it ends, with the stages in order and
+    consistent with the total, and the medians of the runs."""
+    import re
+
+    from _scripts import run_script
+
+    r = run_script("benchmarks/bench_viewer.py", "--quick", timeout=300)
+    m = re.search(r"viewer of a 64 x 64 result .*: ([\d.]+) MiB", r.stdout)
+    assert m and 0 < float(m.group(1)) < 30, r.stdout
+    num = r"([\d.]+)"
+    runs = [tuple(float(x) for x in g.groups()) for g in re.finditer(
+        rf"^run \d/2: start-up {num} s \+ page {num} s \(script {num} s, base64 {num} s, decoded {num} s, "
+        rf"first frame {num} s\) = total {num} s$", r.stdout, re.M)]
+    assert len(runs) == 2, r.stdout
+    for startup, page, script, b64, decoded, frame, total in runs:
+        assert 0 < startup < 30 and 0 < script <= b64 <= decoded <= frame == page < 30, runs
+        assert startup + page <= total + 0.02 < startup + page + 5, runs  # the line is read after the frame
+    m = re.search(rf"median of 2: start-up {num} s, page to first frame {num} s .* total {num} s", r.stdout)
+    assert m and float(m.group(2)) == pytest.approx((runs[0][1] + runs[1][1]) / 2, abs=0.011), r.stdout
+    assert r.first(r"^median") - r.first(r"^run 1/2") > 0.2  # printed as it goes

@@ -15,6 +15,13 @@ buttons switch to the normal map, the albedo, the confidence and the residual ma
 ``#light=x,y,z&mode=relit|normals|albedo|confidence|error`` from its URL (used by the tests, which
 screenshot it in headless Chromium).
 
+When the first frame is drawn (and the GPU has finished it), the page records its times in
+milliseconds after the navigation start (``performance.now()``) on ``document.body``:
+``data-script-ms`` (the HTML with its embedded data parsed, the script starts),
+``data-decoded-ms`` (the coefficient planes inflated) and ``data-first-frame-ms``, with
+``data-time-origin`` (``performance.timeOrigin``, ms since the epoch), and logs them in one
+``console.info`` line (``benchmarks/bench_viewer.py`` reads it to time the first frame).
+
 Example:
     >>> from torch_hsh.viewer import write_viewer  # doctest: +SKIP
     >>> write_viewer("result.html", HSHResult.load("results/capture/result.npz"))  # doctest: +SKIP
@@ -221,6 +228,7 @@ _TEMPLATE = r"""<!doctype html>
 <script id="data" type="application/octet-stream">__DATA__</script>
 <script>
 "use strict";
+const T_SCRIPT = performance.now();  // the HTML, embedded data included, is parsed up to here
 const META = JSON.parse(document.getElementById('meta').textContent);
 const MODES = ['relit', 'normals', 'albedo', 'confidence', 'error'];
 const state = {light: [0, 0, 1], mode: 0};
@@ -272,9 +280,13 @@ async function main() {
   const gl = cv.getContext('webgl2', {preserveDrawingBuffer: true, antialias: false});
   if (!gl) { document.getElementById('info').textContent = 'WebGL2 is not available'; return; }
   const b64 = document.getElementById('data').textContent.trim();
-  const raw = Uint8Array.from(atob(b64), c => c.charCodeAt(0));
+  let raw;
+  if (Uint8Array.fromBase64) raw = Uint8Array.fromBase64(b64);  // native (Chromium 140+, Firefox 133+, Safari 18.2+)
+  else { const s = atob(b64); raw = new Uint8Array(s.length); for (let i = 0; i < s.length; i++) raw[i] = s.charCodeAt(i); }
+  const T_BASE64 = performance.now();
   const buf = await new Response(new Blob([raw]).stream().pipeThrough(new DecompressionStream('deflate'))).arrayBuffer();
   const data = new Uint16Array(buf);
+  const T_DECODED = performance.now();
   const prog = gl.createProgram();
   gl.attachShader(prog, shader(gl, gl.VERTEX_SHADER, VS)); gl.attachShader(prog, shader(gl, gl.FRAGMENT_SHADER, FS));
   gl.linkProgram(prog); if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
@@ -298,7 +310,15 @@ async function main() {
   cv.addEventListener('pointerdown', drag); cv.addEventListener('pointermove', drag);
   for (const b of document.querySelectorAll('button')) b.onclick = () => { state.mode = MODES.indexOf(b.dataset.m); draw(); };
   window.addEventListener('hashchange', () => { parseHash(); draw(); });
-  draw(); document.title = document.title + ' (ready)';
+  draw();
+  // first frame: wait for the GPU (a 1-pixel read) and record the times (ms after navigation start)
+  gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+  const T_FIRST = performance.now(), ds = document.body.dataset;
+  ds.scriptMs = T_SCRIPT.toFixed(1); ds.base64Ms = T_BASE64.toFixed(1); ds.decodedMs = T_DECODED.toFixed(1); ds.firstFrameMs = T_FIRST.toFixed(1);
+  ds.timeOrigin = performance.timeOrigin.toFixed(1);
+  console.info('torch_hsh viewer: first frame ' + ds.firstFrameMs + ' ms (script ' + ds.scriptMs +
+               ' ms, base64 ' + ds.base64Ms + ' ms, decoded ' + ds.decodedMs + ' ms) after navigation start ' + ds.timeOrigin);
+  document.title = document.title + ' (ready)';
 }
 main().catch(e => { document.getElementById('info').textContent = 'error: ' + e.message; console.error(e); });
 </script></body></html>
