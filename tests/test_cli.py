@@ -78,6 +78,14 @@ def _run(argv, capsys=None):
     return code, err
 
 
+def _error_line(err):
+    """The message of an argparse-style error: the ``prog: error: ...`` line, without the usage block
+    (which names every option, so a match on the whole of stderr would pass for any error)."""
+    lines = [ln for ln in err.strip().splitlines() if ": error: " in ln]
+    assert lines, err
+    return lines[-1].split(": error: ", 1)[1]
+
+
 def _snapshot(folder):
     return {p.name: p.read_bytes() for p in sorted(Path(folder).iterdir())}
 
@@ -109,7 +117,7 @@ def test_help_lists_the_options(capsys):
 def test_bad_arguments_exit_2_before_any_folder(tmp_path, capsys, fake_solver, extra, msg):
     out = tmp_path / "res"
     code, err = _run(["ps", "--out", str(out), *FAST, *extra], capsys)
-    assert code == 2 and msg in err
+    assert code == 2 and msg in _error_line(err), err
     assert not out.exists() and os.listdir(tmp_path) == []
     assert fake_solver.calls == []
 
@@ -324,7 +332,7 @@ def test_python_m_torch_hsh_exit_codes(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     r = subprocess.run([sys.executable, "-m", "torch_hsh", "ps", "--holdout", "-3", "--out", str(tmp_path / "r")],
                        capture_output=True, text=True, env=env, timeout=120)
-    assert r.returncode == 2 and "--holdout" in r.stderr and not (tmp_path / "r").exists()
+    assert r.returncode == 2 and "--holdout" in _error_line(r.stderr) and not (tmp_path / "r").exists()
     r = subprocess.run([sys.executable, "-m", "torch_hsh", "--version"], capture_output=True, text=True, env=env,
                        timeout=120)
     assert r.returncode == 0 and torch_hsh.__version__ in r.stdout
