@@ -729,5 +729,6 @@ def test_independent_azimuthal_fourier_reduction():
                 per_order[p] += a * a
     acc_ind = np.cumsum(per_order) / E
     acc_lib = F.brdf_accuracy(f, P)
-    assert np.abs(acc_ind - acc_lib.numpy()).max() < 0.005
+    # measured 4.7e-4 (orders 0..8); docs/reproducing_the_paper.md quotes "agreement < 1e-3"
+    assert np.abs(acc_ind - acc_lib.numpy()).max() < 1e-3
     assert abs(acc_ind[8] - 0.5111) < 1e-3
