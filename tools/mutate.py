@@ -12,6 +12,10 @@ re-tests mutants whose function or tests changed.
 The summary (killed / survived / timed out / ... and the score) is printed per module and written to
 ``build/mutmut/<module>/summary.txt``; ``mutmut results`` / ``mutmut show NAME`` run inside that folder
 list and show the surviving mutants.
+
+mutmut keeps a mutant's verdict until the mutated *function* changes: new or changed tests do not
+re-judge the survivors. ``--retest-survivors`` runs every mutant that was not killed again (after adding
+tests), ``--fresh`` drops the cache and starts over.
 """
 from __future__ import annotations
 
@@ -60,6 +64,13 @@ def prepare(name: str) -> Path:
     return work
 
 
+def _not_killed(work: Path):
+    r = subprocess.run([sys.executable, "-m", "mutmut", "results", "--all", "true"], cwd=work,
+                       capture_output=True, text=True)
+    return [ln.split(":", 1)[0].strip() for ln in r.stdout.splitlines()
+            if ":" in ln and ln.rsplit(":", 1)[1].strip() != "killed"]
+
+
 def summarize(work: Path) -> str:
     r = subprocess.run([sys.executable, "-m", "mutmut", "results", "--all", "true"], cwd=work,
                        capture_output=True, text=True)
@@ -77,15 +88,21 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("modules", nargs="*", help=f"which modules to mutate: {', '.join(MODULES)} (default: all)")
     ap.add_argument("--max-children", type=int, default=os.cpu_count() or 1, help="parallel mutant workers")
+    ap.add_argument("--retest-survivors", action="store_true",
+                    help="run the mutants that were not killed again (new tests do not invalidate mutmut's cache)")
+    ap.add_argument("--fresh", action="store_true", help="drop mutmut's cache (mutants/) and mutate from scratch")
     args = ap.parse_args(argv)
     bad = [m for m in args.modules if m not in MODULES]
     if bad:
         ap.error(f"unknown module(s) {', '.join(bad)}; choose from {', '.join(MODULES)}")
     for name in args.modules or list(MODULES):
         work = prepare(name)
+        if args.fresh and (work / "mutants").exists():
+            shutil.rmtree(work / "mutants")
+        names = _not_killed(work) if args.retest_survivors and (work / "mutants").exists() else []
         t0 = time.perf_counter()
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-        rc = subprocess.run([sys.executable, "-m", "mutmut", "run", "--max-children", str(args.max_children)],
+        rc = subprocess.run([sys.executable, "-m", "mutmut", "run", "--max-children", str(args.max_children), *names],
                             cwd=work, env=env).returncode
         line = f"{name}: {summarize(work)}  ({time.perf_counter() - t0:.0f} s, {args.max_children} workers, rc {rc})"
         print(line, flush=True)
