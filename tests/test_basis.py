@@ -711,3 +711,35 @@ def test_gradients_when_only_some_inputs_require_grad(tiny_chunks, chunked):
     # a second derivative through the chunked backward (create_graph)
     x = _hemi(3, seed=63).requires_grad_(True)
     assert torch.autograd.gradgradcheck(lambda u: helmholtz_isotropic(u, wo[:3], 2), (x,))
+
+
+@pytest.mark.parametrize("order", [0, 1, 2])
+def test_low_orders_match_reference_through_every_entry_point(order):
+    wi, wo = _hemi(25, seed=70), _hemi(25, seed=71)
+    ref = torch.tensor(iso_ref(wi.numpy(), wo.numpy(), order))
+    assert ref.shape == (25, num_isotropic(order))
+    torch.testing.assert_close(helmholtz_isotropic(wi, wo, order), ref, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(helmholtz_isotropic(wi, wi, order), torch.tensor(iso_ref(wi.numpy(), wi.numpy(), order)),
+                               rtol=1e-9, atol=1e-10)
+    cd = torch.cos(torch.atan2(wo[:, 1], wo[:, 0]) - torch.atan2(wi[:, 1], wi[:, 0]))
+    torch.testing.assert_close(helmholtz_isotropic_cosines(wi[:, 2], wo[:, 2], cd, order), ref, rtol=1e-9, atol=1e-10)
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    torch.testing.assert_close(helmholtz_isotropic_world(wi, wo, n, order), ref, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("chunked", [True, False])
+def test_gradient_of_an_input_the_basis_does_not_use_is_zero(tiny_chunks, chunked):
+    """At order 0 the basis is a constant on the hemisphere: the gradients are zero (not an error), in the
+    chunked path too (where the rows are evaluated inside an autograd Function)."""
+    if not chunked:
+        tiny_chunks._CHUNK_ELEMS = 1 << 30
+    zi = torch.tensor([0.3, 0.7, 1.0], dtype=F64, requires_grad=True)
+    zo = torch.tensor([0.5, 0.2, 0.9], dtype=F64, requires_grad=True)
+    cd = torch.tensor([0.1, -0.4, 0.8], dtype=F64, requires_grad=True)
+    out = helmholtz_isotropic_cosines(zi, zo, cd, 0)
+    torch.testing.assert_close(out, torch.full((3, 1), 1.0 / (2.0 * math.pi), dtype=F64))
+    y = out.sum() + 0.0 * (zi.sum() + zo.sum() + cd.sum())  # a graph in either path
+    for create_graph in (False, True):  # the Function's backward has a path for each
+        g = torch.autograd.grad(y, (zi, zo, cd), retain_graph=True, create_graph=create_graph)
+        for gi in g:
+            assert torch.equal(gi.detach(), torch.zeros(3, dtype=F64))
