@@ -604,3 +604,154 @@ def test_gradgradcheck_plain_path():
     x = _hemi(3, seed=45).requires_grad_(True)
     y = _hemi(3, seed=46).requires_grad_(True)
     assert torch.autograd.gradgradcheck(lambda a, b: helmholtz_isotropic(a, b, 3), (x, y))
+
+
+# --------------------------------------------------------------------------
+# Behaviour pinned down by mutation testing (make mutate): counts, index
+# tables, exact horizon/pole geometry, deep leading shapes, partial gradients
+# --------------------------------------------------------------------------
+def test_counts_are_python_ints_and_index_tables_are_long():
+    from torch_hsh.basis import MAX_ANISOTROPIC_ORDER
+
+    for P in range(0, 9):
+        assert type(num_isotropic(P)) is int and type(num_anisotropic(min(P, 4))) is int
+    assert isotropic_indices(3).dtype == torch.long and anisotropic_indices(2).dtype == torch.long
+    with pytest.raises(ValueError, match="order"):
+        anisotropic_indices(MAX_ANISOTROPIC_ORDER + 1)
+    with pytest.raises(ValueError, match="n=2, m=3"):
+        hsh_index(2, 3)
+
+
+def _local(z, phi):
+    s = math.sqrt(max(0.0, 1.0 - z * z))
+    return [s * math.cos(phi), s * math.sin(phi), z]
+
+
+def test_exact_horizon_and_pole_agree_across_entry_points():
+    """cos = 0 (in the tangent plane) and cos = 1 (the normal) are valid inputs of every entry point and give
+    the reference values; a cosine above 1 is outside the hemisphere (zero), cos_dphi is clamped to [-1, 1]."""
+    P = 4
+    pts = [(0.0, 0.0), (0.0, 2.0), (1.0, 0.0), (0.6, 1.0), (0.0, -2.5), (1.0, 3.0)]
+    pairs = [(a, b) for a in pts for b in pts]
+    wi = torch.tensor([_local(*a) for a, _ in pairs], dtype=F64)
+    wo = torch.tensor([_local(*b) for _, b in pairs], dtype=F64)
+    ref = torch.tensor(iso_ref(wi.numpy(), wo.numpy(), P))
+    assert float(ref.abs().max()) > 0.1
+    torch.testing.assert_close(helmholtz_isotropic(wi, wo, P), ref, rtol=1e-9, atol=1e-10)
+    zi = torch.tensor([a[0] for a, _ in pairs], dtype=F64)
+    zo = torch.tensor([b[0] for _, b in pairs], dtype=F64)
+    cd = torch.tensor([math.cos(b[1] - a[1]) for a, b in pairs], dtype=F64)
+    torch.testing.assert_close(helmholtz_isotropic_cosines(zi, zo, cd, P), ref, rtol=1e-9, atol=1e-10)
+    # world frame: a tilted normal, directions built from its explicit tangent frame
+    n = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.8], dtype=F64), dim=0)
+    t = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([1.0, 0.0, 0.0], dtype=F64), n, dim=0), dim=0)
+    b = torch.linalg.cross(n, t, dim=0)
+    R = torch.stack([t, b, n], -1)  # columns: local -> world
+    # (rows with a direction exactly in the tangent plane are left out: after the rotation their n . w is
+    # +-1e-17, and the hemisphere test then keeps or drops them by rounding)
+    ok = (zi > 0) & (zo > 0)
+    world = helmholtz_isotropic_world(wi @ R.T, wo @ R.T, n, P)
+    torch.testing.assert_close(world[ok], ref[ok], rtol=1e-9, atol=1e-10)
+    # outside [0, 1] in a cosine: zero; cos_dphi beyond [-1, 1] acts as +-1
+    one, half = torch.tensor([1.0], dtype=F64), torch.tensor([0.5], dtype=F64)
+    for bad_i, bad_o in ((1.0 + 1e-6, 0.5), (0.5, 1.0 + 1e-6), (1.5, 0.5), (0.5, 1.5)):
+        out = helmholtz_isotropic_cosines(torch.tensor([bad_i], dtype=F64), torch.tensor([bad_o], dtype=F64), one, P)
+        assert bool((out == 0).all()), (bad_i, bad_o)
+    torch.testing.assert_close(helmholtz_isotropic_cosines(half, half, torch.tensor([1.7], dtype=F64), P),
+                               helmholtz_isotropic_cosines(half, half, one, P), rtol=0, atol=0)
+    torch.testing.assert_close(helmholtz_isotropic_cosines(half, half, torch.tensor([-1.7], dtype=F64), P),
+                               helmholtz_isotropic_cosines(half, half, -one, P), rtol=0, atol=0)
+
+
+def test_exact_horizon_gradients_match_the_local_path():
+    """Gradients at cos = 0 and 1 through the cosines and world entry points equal those of the local path."""
+    P = 3
+    zs = torch.tensor([0.0, 1.0, 0.4, 0.0], dtype=F64)
+    zo = torch.tensor([0.7, 0.0, 1.0, 0.0], dtype=F64)
+    cd = torch.tensor([0.3, -0.6, 0.9, -1.0], dtype=F64)
+    w = torch.linspace(-1.0, 1.0, num_isotropic(P), dtype=F64)
+    for z1, z2 in ((zs, zo), (zo, zs)):
+        a, b = z1.clone().requires_grad_(True), z2.clone().requires_grad_(True)
+        ga = torch.autograd.grad((helmholtz_isotropic_cosines(a, b, cd, P) * w).sum(), (a, b))
+        assert all(bool(torch.isfinite(g).all()) for g in ga)
+        # interior points: compare with central differences
+        inner = (z1 > 0) & (z1 < 1)
+        h = 1e-6
+        fp = (helmholtz_isotropic_cosines(z1 + h, z2, cd, P) * w).sum(-1)
+        fm = (helmholtz_isotropic_cosines(z1 - h, z2, cd, P) * w).sum(-1)
+        torch.testing.assert_close(ga[0][inner], ((fp - fm) / (2 * h))[inner], rtol=1e-5, atol=1e-6)
+
+
+def test_deep_leading_shapes_and_broadcast_normals():
+    g = torch.Generator().manual_seed(60)
+    wi = torch.nn.functional.normalize(torch.randn(2, 3, 4, 3, generator=g, dtype=F64).abs(), dim=-1)
+    wo = torch.nn.functional.normalize(torch.randn(2, 3, 4, 3, generator=g, dtype=F64).abs(), dim=-1)
+    flat_i, flat_o = wi.reshape(-1, 3), wo.reshape(-1, 3)
+    assert helmholtz_isotropic(wi, wo, 3).shape == (2, 3, 4, 20)
+    assert helmholtz_isotropic(wi, wi, 3).shape == (2, 3, 4, 20)  # the shared-table path (wo is wi)
+    torch.testing.assert_close(helmholtz_isotropic(wi, wi, 3).reshape(-1, 20), helmholtz_isotropic(flat_i, flat_i, 3))
+    assert helmholtz_anisotropic(wi, wi, 1).shape == (2, 3, 4, num_anisotropic(1))
+    torch.testing.assert_close(helmholtz_isotropic(wi, wo, 3).reshape(-1, 20), helmholtz_isotropic(flat_i, flat_o, 3))
+    assert helmholtz_anisotropic(wi, wo, 1).shape == (2, 3, 4, num_anisotropic(1))
+    torch.testing.assert_close(helmholtz_anisotropic(wi, wo, 1).reshape(24, -1), helmholtz_anisotropic(flat_i, flat_o, 1))
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    nb = n.expand(3, 1, 3)  # broadcasts against (2, 3, 4)
+    out = helmholtz_isotropic_world(wi, wo, nb, 3)
+    assert out.shape == (2, 3, 4, 20)
+    torch.testing.assert_close(out, helmholtz_isotropic(wi, wo, 3))
+    assert helmholtz_isotropic_world(wi[0, 0], wo[0, 0], torch.stack([n] * 5)[:, None], 2).shape == (5, 4, 10)
+
+
+@pytest.mark.parametrize("chunked", [True, False])
+def test_gradients_when_only_some_inputs_require_grad(tiny_chunks, chunked):
+    """d/d(normal) alone, d/d(wi) alone (wo constant): the same as with every input requiring grad."""
+    if not chunked:
+        tiny_chunks._CHUNK_ELEMS = 1 << 30
+    wi, wo = _hemi(12, seed=61), _hemi(12, seed=62)
+    n = torch.nn.functional.normalize(torch.tensor([[0.1, 0.2, 1.0]], dtype=F64).expand(12, 3), dim=-1)
+    w = torch.linspace(-1, 1, 20, dtype=F64)
+    a, b, c = (t.clone().requires_grad_(True) for t in (wi, wo, n))
+    full = torch.autograd.grad((helmholtz_isotropic_world(a, b, c, 3) * w).sum(), (a, b, c))
+    cn = n.clone().requires_grad_(True)
+    (g_n,) = torch.autograd.grad((helmholtz_isotropic_world(wi, wo, cn, 3) * w).sum(), (cn,))
+    torch.testing.assert_close(g_n, full[2], rtol=1e-12, atol=1e-12)
+    ai = wi.clone().requires_grad_(True)
+    (g_i,) = torch.autograd.grad((helmholtz_isotropic(ai, wo, 3) * w).sum(), (ai,))
+    ai2, bo2 = wi.clone().requires_grad_(True), wo.clone().requires_grad_(True)
+    ref = torch.autograd.grad((helmholtz_isotropic(ai2, bo2, 3) * w).sum(), (ai2, bo2))
+    torch.testing.assert_close(g_i, ref[0], rtol=1e-12, atol=1e-12)
+    # a second derivative through the chunked backward (create_graph)
+    x = _hemi(3, seed=63).requires_grad_(True)
+    assert torch.autograd.gradgradcheck(lambda u: helmholtz_isotropic(u, wo[:3], 2), (x,))
+
+
+@pytest.mark.parametrize("order", [0, 1, 2])
+def test_low_orders_match_reference_through_every_entry_point(order):
+    wi, wo = _hemi(25, seed=70), _hemi(25, seed=71)
+    ref = torch.tensor(iso_ref(wi.numpy(), wo.numpy(), order))
+    assert ref.shape == (25, num_isotropic(order))
+    torch.testing.assert_close(helmholtz_isotropic(wi, wo, order), ref, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(helmholtz_isotropic(wi, wi, order), torch.tensor(iso_ref(wi.numpy(), wi.numpy(), order)),
+                               rtol=1e-9, atol=1e-10)
+    cd = torch.cos(torch.atan2(wo[:, 1], wo[:, 0]) - torch.atan2(wi[:, 1], wi[:, 0]))
+    torch.testing.assert_close(helmholtz_isotropic_cosines(wi[:, 2], wo[:, 2], cd, order), ref, rtol=1e-9, atol=1e-10)
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    torch.testing.assert_close(helmholtz_isotropic_world(wi, wo, n, order), ref, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("chunked", [True, False])
+def test_gradient_of_an_input_the_basis_does_not_use_is_zero(tiny_chunks, chunked):
+    """At order 0 the basis is a constant on the hemisphere: the gradients are zero (not an error), in the
+    chunked path too (where the rows are evaluated inside an autograd Function)."""
+    if not chunked:
+        tiny_chunks._CHUNK_ELEMS = 1 << 30
+    zi = torch.tensor([0.3, 0.7, 1.0], dtype=F64, requires_grad=True)
+    zo = torch.tensor([0.5, 0.2, 0.9], dtype=F64, requires_grad=True)
+    cd = torch.tensor([0.1, -0.4, 0.8], dtype=F64, requires_grad=True)
+    out = helmholtz_isotropic_cosines(zi, zo, cd, 0)
+    torch.testing.assert_close(out, torch.full((3, 1), 1.0 / (2.0 * math.pi), dtype=F64))
+    y = out.sum() + 0.0 * (zi.sum() + zo.sum() + cd.sum())  # a graph in either path
+    for create_graph in (False, True):  # the Function's backward has a path for each
+        g = torch.autograd.grad(y, (zi, zo, cd), retain_graph=True, create_graph=create_graph)
+        for gi in g:
+            assert torch.equal(gi.detach(), torch.zeros(3, dtype=F64))

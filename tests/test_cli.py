@@ -78,6 +78,14 @@ def _run(argv, capsys=None):
     return code, err
 
 
+def _error_line(err):
+    """The message of an argparse-style error: the ``prog: error: ...`` line, without the usage block
+    (which names every option, so a match on the whole of stderr would pass for any error)."""
+    lines = [ln for ln in err.strip().splitlines() if ": error: " in ln]
+    assert lines, err
+    return lines[-1].split(": error: ", 1)[1]
+
+
 def _snapshot(folder):
     return {p.name: p.read_bytes() for p in sorted(Path(folder).iterdir())}
 
@@ -109,7 +117,7 @@ def test_help_lists_the_options(capsys):
 def test_bad_arguments_exit_2_before_any_folder(tmp_path, capsys, fake_solver, extra, msg):
     out = tmp_path / "res"
     code, err = _run(["ps", "--out", str(out), *FAST, *extra], capsys)
-    assert code == 2 and msg in err
+    assert code == 2 and msg in _error_line(err), err
     assert not out.exists() and os.listdir(tmp_path) == []
     assert fake_solver.calls == []
 
@@ -248,6 +256,63 @@ def test_our_result_with_a_user_file_added_is_not_ours(tmp_path, capsys, fake_so
     assert code == 2 and (out / "notes.txt").read_text() == "mine"
 
 
+@pytest.mark.parametrize("edit", ["change", "same_size"])
+def test_a_user_edit_inside_our_result_is_not_overwritten(tmp_path, capsys, fake_solver, edit):
+    """The manifest's SHA-256 sums are compared, not only the names: an edited file makes the folder the user's."""
+    out = tmp_path / "res"
+    cli.ps_main(["--out", str(out), *FAST])
+    p = out / "metrics.json"
+    text = p.read_text()
+    edited = text.replace('"lights": 8', '"lights": 9') if edit == "same_size" else text + "\n// my notes\n"
+    assert edited != text and (edit != "same_size" or len(edited) == len(text))
+    p.write_text(edited)
+    assert not cli.is_result_folder(out)
+    code, err = _run(["ps", "--out", str(out), *FAST, "--seed", "4"], capsys)
+    assert code == 2 and "metrics.json (changed since the run)" in _error_line(err) and "--overwrite" in err
+    assert p.read_text() == edited and len(fake_solver.calls) == 1
+    cli.ps_main(["--out", str(out), *FAST, "--overwrite"])
+    assert cli.is_result_folder(out)
+
+
+def test_interrupted_run_into_new_parent_folders_removes_them(tmp_path, capsys, fake_solver):
+    """docs/cli.md: nothing is left behind by a run that does not finish, not even the parents it made."""
+    fake_solver.state["fail_in_pictures"] = KeyboardInterrupt()
+    code, _ = _run(["ps", "--out", str(tmp_path / "a" / "b" / "res"), *FAST], capsys)
+    assert code == 130 and os.listdir(tmp_path) == []
+    # a parent that existed before, or that something else wrote into meanwhile, stays
+    (tmp_path / "keep").mkdir()
+    code, _ = _run(["ps", "--out", str(tmp_path / "keep" / "new" / "res"), *FAST], capsys)
+    assert code == 130 and os.listdir(tmp_path) == ["keep"] and os.listdir(tmp_path / "keep") == []
+    fake_solver.state["fail_in_pictures"] = None
+    cli.ps_main(["--out", str(tmp_path / "a" / "b" / "res"), *FAST])
+    assert cli.is_result_folder(tmp_path / "a" / "b" / "res")
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self") or (hasattr(os, "geteuid") and os.geteuid() != 0),
+                    reason="as root, os.access says /proc is writable; creating in it fails")
+def test_out_in_a_folder_that_refuses_new_folders_exits_2_before_the_solve(capsys, fake_solver):
+    code, err = _run(["ps", "--out", "/proc/torch_hsh_x", *FAST], capsys)
+    assert code == 2 and "does not accept new folders" in _error_line(err) and "--out" in _error_line(err)
+    assert fake_solver.calls == []
+
+
+def test_out_probe_leaves_nothing(tmp_path, capsys, fake_solver, monkeypatch):
+    real = cli.tempfile.mkdtemp
+
+    def refuse(*a, **k):
+        if k.get("prefix", "").startswith(".torch-hsh-probe."):
+            raise PermissionError(13, "Permission denied")
+        return real(*a, **k)
+
+    monkeypatch.setattr(cli.tempfile, "mkdtemp", refuse)
+    code, err = _run(["ps", "--out", str(tmp_path / "x" / "res"), *FAST], capsys)
+    assert code == 2 and "does not accept new folders (Permission denied)" in _error_line(err)
+    assert os.listdir(tmp_path) == [] and fake_solver.calls == []
+    monkeypatch.setattr(cli.tempfile, "mkdtemp", real)
+    cli.ps_main(["--out", str(tmp_path / "x" / "res"), *FAST])
+    assert sorted(os.listdir(tmp_path / "x")) == ["res"]
+
+
 @pytest.mark.parametrize("exc,code", [(KeyboardInterrupt(), 130), (RuntimeError("disk full"), 1)])
 def test_interrupted_run_leaves_previous_result_untouched(tmp_path, capsys, fake_solver, exc, code):
     out = tmp_path / "res"
@@ -324,7 +389,7 @@ def test_python_m_torch_hsh_exit_codes(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     r = subprocess.run([sys.executable, "-m", "torch_hsh", "ps", "--holdout", "-3", "--out", str(tmp_path / "r")],
                        capture_output=True, text=True, env=env, timeout=120)
-    assert r.returncode == 2 and "--holdout" in r.stderr and not (tmp_path / "r").exists()
+    assert r.returncode == 2 and "--holdout" in _error_line(r.stderr) and not (tmp_path / "r").exists()
     r = subprocess.run([sys.executable, "-m", "torch_hsh", "--version"], capture_output=True, text=True, env=env,
                        timeout=120)
     assert r.returncode == 0 and torch_hsh.__version__ in r.stdout

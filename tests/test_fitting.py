@@ -641,8 +641,14 @@ def test_divergent_energy_requires_cutoff():
 
     m = TorranceSparrow(0.2, 0.5, 0.5, 1.5)  # 1/cos(theta_i) cos(theta_o): f^2 not integrable
     f = lambda wi, wo: m(wi, wo)[..., 0]  # noqa: E731
-    with pytest.raises(F.ConvergenceError, match="grazing_cutoff"):
+    with pytest.raises(F.ConvergenceError, match="grazing_cutoff") as ei:
         F.brdf_energy(f, 2, max_evaluations=3_000_000)
+    # stopped by the divergence test, not by the budget: both messages carry the grazing_cutoff hint, only
+    # the budget one names max_evaluations; the theta refinements kept changing the energy by >= 0.7x
+    e = ei.value
+    assert "max_evaluations" not in str(e) and e.info["evaluations"] < 3_000_000, str(e)
+    theta = [h[3] for h in e.info["history"] if h[0] == "theta"]
+    assert len(theta) >= 4 and all(b > 0.7 * a for a, b in zip(theta[-4:], theta[-3:])), theta
     E, info = F.brdf_energy(f, 2, grazing_cutoff=0.05, return_info=True)
     assert info["converged"] and float(E) > 0
 
@@ -723,5 +729,6 @@ def test_independent_azimuthal_fourier_reduction():
                 per_order[p] += a * a
     acc_ind = np.cumsum(per_order) / E
     acc_lib = F.brdf_accuracy(f, P)
-    assert np.abs(acc_ind - acc_lib.numpy()).max() < 0.005
+    # measured 4.7e-4 (orders 0..8); docs/reproducing_the_paper.md quotes "agreement < 1e-3"
+    assert np.abs(acc_ind - acc_lib.numpy()).max() < 1e-3
     assert abs(acc_ind[8] - 0.5111) < 1e-3

@@ -525,3 +525,42 @@ def test_dataset_to():
     )  # fmt: skip
     e = d.to(dtype=torch.float64)
     assert e.images.dtype == torch.float64 and e.mask.dtype == torch.bool and e.normals_gt is None
+
+
+def test_corrupt_normal_gt_that_crashes_scipy_gives_an_error_naming_the_file(tmp_path, monkeypatch):
+    """One changed byte in a MAT file can make scipy's loadmat segfault: the file is read in a child process."""
+    from torch_hsh.io import diligent as D
+
+    _handmade_folder(tmp_path / "o")
+    f = tmp_path / "o" / "Normal_gt.mat"
+    raw = bytearray(f.read_bytes())
+    raw[180] = 0xFF  # inside the array's data element: segfaulted scipy 1.x's reader (exit 139, no message)
+    f.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=r"Normal_gt\.mat: (the MATLAB file is corrupt|cannot read)"):
+        load_diligent(tmp_path / "o")
+    # whatever this scipy does with that byte: a reader that crashes is reported, with the file named
+    monkeypatch.setattr(D, "_MAT_READER", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)")
+    with pytest.raises(ValueError, match=r"Normal_gt\.mat: the MATLAB file is corrupt: scipy's reader crashed "
+                                         r"on it \(SIGSEGV\)"):
+        load_diligent(tmp_path / "o")
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "long", "zero", "inf_outside"])
+def test_normal_gt_must_hold_finite_unit_normals_inside_the_mask(tmp_path, bad):
+    info = _handmade_folder(tmp_path / "o")
+    n = info["normals"].copy()
+    i, j = np.argwhere(info["mask"])[0]
+    n[~info["mask"]] = 0.0  # outside the mask DiLiGenT stores zeros: not unit, but fine
+    if bad == "inf_outside":
+        i, j = np.argwhere(~info["mask"])[0]
+    n[i, j] = {"nan": [np.nan, 0, 1], "inf": [0, np.inf, 1], "long": [0, 0, 1.5], "zero": [0, 0, 0],
+               "inf_outside": [np.inf, 0, 0]}[bad]
+    scipy.io.savemat(str(tmp_path / "o" / "Normal_gt.mat"), {"Normal_gt": n})
+    msg = {"nan": r"NaN or Inf values at 1 pixels \(1 inside", "inf": r"NaN or Inf values at 1 pixels \(1 inside",
+           "inf_outside": r"NaN or Inf values at 1 pixels \(0 inside"}.get(bad, "not a unit normal at 1 of the")
+    with pytest.raises(ValueError, match=msg) as ei:
+        load_diligent(tmp_path / "o")
+    assert str(tmp_path / "o" / "Normal_gt.mat") in str(ei.value)
+    n[i, j] = [0.0, 0.6, 0.8]
+    scipy.io.savemat(str(tmp_path / "o" / "Normal_gt.mat"), {"Normal_gt": n})
+    assert load_diligent(tmp_path / "o").normals_gt is not None

@@ -392,11 +392,14 @@ def test_full_size_ggx_file_round_trip(tmp_path):
     assert (((r(wi, wo) - ref).abs() / ref).max()) < 0.15
 
 
-def test_merl_round_trip_accuracy_within_binning_bound(tmp_path):
-    """Acc(P) through a written/read MERL table matches the analytic projection within the binning bound.
+def test_merl_round_trip_accuracy_close_to_the_analytic_projection(tmp_path):
+    """Acc(P) and the coefficients through a written/read MERL table stay close to the analytic projection.
 
-    On a rule with B^T W B = I: | ||a_g|| - ||a_f|| | <= ||a_d|| and | ||g|| - ||f|| | <= ||d|| (d = g - f),
-    which bounds sqrt(Acc_g) in terms of the binning error d.
+    The interval that Bessel's inequality gives (| ||a_g|| - ||a_f|| | <= ||a_d||, d = g - f) holds for *any*
+    lookup on an orthonormal rule, so it checks nothing. Instead the binning error, the coefficient error and
+    |dAcc| are held to measured values (r = 0.093, coefficients 0.042, |dAcc| 0.0142 at (30, 30, 60)) with a
+    margin; a theta_d bin off by one (r 0.19, coefficients 0.14, |dAcc| 0.053), a theta_h bin off by one or
+    a linear theta_h index fail it. (phi_d mirrored is invisible here: the Blinn-Phong lobe is symmetric.)
     """
     from torch_hsh import fitting as F
     from torch_hsh._integrate import rule_sums
@@ -415,11 +418,9 @@ def test_merl_round_trip_accuracy_within_binning_bound(tmp_path):
 
     rf, rg, rd = sums(f), sums(g), sums(lambda wi, wo: g(wi, wo) - f(wi, wo))
     acc = lambda r: F.energy_accuracy(r.a, r.E, basis=b)[0]  # noqa: E731
-    nf, nd = rf.E[0].sqrt(), rd.E[0].sqrt()
-    af, ad = acc(rf).sqrt() * nf, acc(rd).sqrt() * nd
-    lo = ((af - ad).clamp(min=0) / (nf + nd)) ** 2
-    hi = ((af + ad) / (nf - nd)) ** 2
-    acc_g = acc(rg)
-    assert float(nd / nf) < 0.2  # the binning error is small but not zero
-    assert bool(((acc_g >= lo) & (acc_g <= hi)).all())
-    assert float((acc_g - acc(rf)).abs().max()) > 1e-4  # the lookup is not the analytic BRDF
+    r = float(rd.E[0].sqrt() / rf.E[0].sqrt())
+    coef = float((rg.a - rf.a).norm() / rf.a.norm())
+    dacc = (acc(rg) - acc(rf)).abs()
+    assert 0.05 < r < 0.12, r  # the binning error is small but not zero
+    assert coef < 0.06, coef
+    assert 1e-4 < float(dacc.max()) < 0.02, dacc  # the lookup is not the analytic BRDF, but close

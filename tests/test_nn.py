@@ -228,6 +228,27 @@ def test_state_dict_round_trip(learnable):
         m3.load_state_dict(old)
 
 
+def test_hsh_module_state_dict_keeps_the_order():
+    """HSH has no parameters; its order is in the state_dict, so a checkpoint of another order does not load."""
+    from torch_hsh import HSH
+
+    buf = io.BytesIO()
+    torch.save(HSH(5).state_dict(), buf)
+    buf.seek(0)
+    sd = torch.load(buf)
+    assert sd["_extra_state"] == {"order": 5}
+    HSH(5).load_state_dict(sd)
+    with pytest.raises(ValueError, match=r"order=5 \(module has order=2\)"):
+        HSH(2).load_state_dict(sd)
+    # inside a model, and a checkpoint from before the order was kept (empty) still loads, strict
+    net = torch.nn.Sequential(HSH(3), torch.nn.Linear(16, 1))
+    with pytest.raises(ValueError, match="order=3"):
+        torch.nn.Sequential(HSH(4), torch.nn.Linear(16, 1)).load_state_dict(net.state_dict())
+    HSH(2).load_state_dict({})
+    old = {k: v for k, v in net.state_dict().items() if not k.endswith("_extra_state")}
+    torch.nn.Sequential(HSH(3), torch.nn.Linear(16, 1)).load_state_dict(old)
+
+
 @pytest.mark.parametrize("isotropic", [True, False])
 def test_checkpoint_keeps_order_channels_isotropy(isotropic):
     m = HelmholtzBRDF(2, isotropic=isotropic, channels=3, nonnegative=True, learnable=False, dtype=torch.float64)

@@ -97,26 +97,70 @@ def test_cast_shadows_arguments_are_checked():
         ps.solve_hsh(img, l, cast_shadows=1, shadow_bias=-1.0)
 
 
+def _spy_solves(monkeypatch):
+    """Record every solve of the shadow loop: (valid, kwargs, result); the loop calls hsh.solve_hsh by name."""
+    from torch_hsh.ps import hsh
+
+    real, calls = hsh.solve_hsh, []
+
+    def spy(images, lights, **kw):
+        res = real(images, lights, **kw)
+        calls.append((kw.get("valid"), kw, res))
+        return res
+
+    monkeypatch.setattr(hsh, "solve_hsh", spy)
+    return calls
+
+
+def _mean_angle(a, b):
+    c = (torch.nn.functional.normalize(a.double(), dim=-1) * b).sum(-1).clamp(-1, 1)
+    return float(torch.rad2deg(torch.acos(c)).mean())
+
+
+def _check_exclusions(calls, vis, res):
+    """The re-solve excludes observations that are truly cast-shadowed (few false ones; the bias keeps grazing
+    lights, so about 20-40 % of the shadowed observations are found) and reports them."""
+    assert len(calls) == 2 and calls[0][0] is None
+    v = calls[1][0]
+    excluded = ~v
+    precision = float((excluded & ~vis).sum()) / max(int(excluded.sum()), 1)
+    recall = float((excluded & ~vis).sum()) / max(int((~vis).sum()), 1)
+    assert int(excluded.sum()) > 0 and precision > 0.9 and recall > 0.1, (precision, recall)
+    assert res.info["shadow_rounds"] == 1.0
+    assert res.info["shadowed_fraction"] == pytest.approx(float(excluded.double().mean()))
+
+
 @pytest.mark.slow
-def test_solve_hsh_with_cast_shadows_runs_end_to_end():
+def test_solve_hsh_with_cast_shadows_runs_end_to_end(monkeypatch):
     img, l, n, vis = _scene(24)
     from torch_hsh.brdf import Lambertian
     from torch_hsh.render import render
 
     img = render(n, l, Lambertian(torch.full((24, 24, 3), 0.6, dtype=torch.float64)), visibility=vis, ambient=0.3)
+    calls = _spy_solves(monkeypatch)
     r = ps.solve_hsh(img.float(), l.float(), cast_shadows=1, calibration_pixels=256, calibration_rounds=3, max_iter=3)
-    assert "shadow_rounds" in r.info and 0 <= r.info["shadowed_fraction"] < 1
     assert bool(torch.isfinite(r.normals).all())
+    _check_exclusions(calls, vis, r)
+    # without the shadowed observations the normals are much closer to the truth (measured 0.029 -> 0.0045 deg)
+    first, last = _mean_angle(calls[0][2].normals, n), _mean_angle(r.normals, n)
+    assert last < 0.5 * first, (first, last)
 
 
-def test_cast_shadows_with_automatic_materials_and_a_basis_ridge():
+def test_cast_shadows_with_automatic_materials_and_a_basis_ridge(monkeypatch):
     img, l, n, vis = _scene(16)
     from torch_hsh.brdf import Lambertian
     from torch_hsh.render import render
 
     img = render(n, l, Lambertian(torch.full((16, 16, 3), 0.6, dtype=torch.float64)), visibility=vis, ambient=0.3)
+    calls = _spy_solves(monkeypatch)
     r = ps.solve_hsh(img.float(), l.float(), cast_shadows=1, materials="auto", basis_ridge=1e-2,
                      calibration_pixels=128, calibration_rounds=2, max_iter=2, refinement_passes=1)
     assert r.info["basis_ridge"] == 1e-2 and "materials_chosen" in r.info
     assert r.basis_brdfs.shape[0] == r.info["materials_chosen"]
     assert bool(torch.isfinite(r.normals).all())
+    _check_exclusions(calls, vis, r)
+    # the re-solve keeps the first solve's model: its basis BRDFs, the number "auto" chose, the ridge
+    first_res, kw = calls[0][2], calls[1][1]
+    assert kw["basis"] is first_res.basis_brdfs and kw["materials"] == first_res.info["materials_chosen"]
+    assert kw["basis_ridge"] == 1e-2 and torch.allclose(r.basis_brdfs, first_res.basis_brdfs, rtol=0, atol=1e-6)
+    assert _mean_angle(r.normals, n) <= _mean_angle(first_res.normals, n) + 1e-3

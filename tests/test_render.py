@@ -139,6 +139,24 @@ def test_gradients_wrt_normals_and_coefficients():
     assert torch.isfinite(n.grad).all() and m_alb.grad.abs().sum() > 0
 
 
+def _local_frame_reference(n, l, a, e, order):
+    """I = e sum_k a_k B_k(l_loc, v_loc) max(0, n.l), with the light and the view (0, 0, 1) expressed in an
+    explicit tangent frame (t, b, n) of each normal and the local-frame basis ``helmholtz_isotropic``:
+    independent of ``helmholtz_isotropic_world``, which the renderer uses."""
+    helper = torch.where((n[:, :1].abs() < 0.9), torch.tensor([1.0, 0.0, 0.0], dtype=DT),
+                         torch.tensor([0.0, 1.0, 0.0], dtype=DT))
+    t = torch.nn.functional.normalize(torch.linalg.cross(helper, n, dim=-1), dim=-1)
+    b = torch.linalg.cross(n, t, dim=-1)
+    frame = torch.stack([t, b, n], -2)  # (P, 3, 3): rows t, b, n
+    v = torch.tensor([0.0, 0.0, 1.0], dtype=DT)
+    P, L = n.shape[0], l.shape[0]
+    l_loc = torch.einsum("pij,lj->lpi", frame, l)  # (L, P, 3)
+    v_loc = torch.einsum("pij,j->pi", frame, v).expand(L, P, 3)
+    B = torch_hsh.helmholtz_isotropic(l_loc.reshape(-1, 3), v_loc.reshape(-1, 3), order).reshape(L, P, -1)
+    cos = (l @ n.T).clamp(min=0.0)  # (L, P)
+    return torch.einsum("lpk,pck->lpc", B * cos[..., None], a) * e[:, None]
+
+
 def test_shading_basis_linear_model():
     n, l = _normals(7), _lights(5)
     Phi = R.shading_basis(n, l, 2)
@@ -146,6 +164,11 @@ def test_shading_basis_linear_model():
     e = torch.rand(5, 3, dtype=DT) + 0.1
     img = torch.einsum("lpk,pck->lpc", Phi, a) * e[:, None]
     assert torch.allclose(img, R.render_coefficients(n, l, a, e), atol=1e-12)
+    # both rest on helmholtz_isotropic_world: compare with explicit local frames as well
+    ref = _local_frame_reference(n, l, a, e, 2)
+    assert float(ref.abs().max()) > 0.1 and bool(((l @ n.T) > 0).any())
+    assert torch.allclose(img, ref, atol=1e-12)
+    assert torch.allclose(R.render_coefficients(n, l, a, e), ref, atol=1e-12)
 
 
 def test_bad_inputs():

@@ -551,6 +551,8 @@ class _RowChunked(torch.autograd.Function):
         if torch.is_grad_enabled():  # create_graph=True: keep the backward differentiable
             xs = [x if needs[i] else x.detach() for i, x in enumerate(inputs)]
             y = fn(*xs)
+            if not y.requires_grad:  # a kernel constant in its inputs (order 0): zero gradients
+                return (None, None, None, *[torch.zeros_like(x) if i in want else None for i, x in enumerate(inputs)])
             gs = torch.autograd.grad(y, [xs[i] for i in want], gout, create_graph=True, allow_unused=True)
             for i, g in zip(want, gs):
                 grads[i] = torch.zeros_like(inputs[i]) if g is None else g
@@ -561,6 +563,8 @@ class _RowChunked(torch.autograd.Function):
             with torch.enable_grad():
                 xs = [x[s : s + rows].detach().requires_grad_(needs[i]) for i, x in enumerate(inputs)]
                 y = fn(*xs)
+                if not y.requires_grad:  # a kernel constant in its inputs (order 0): the gradient stays zero
+                    continue
                 gs = torch.autograd.grad(y, [xs[i] for i in want], gout[s : s + rows], allow_unused=True)
             for i, g in zip(want, gs):
                 if g is not None:

@@ -147,14 +147,42 @@ def _read_manifest(folder: Path) -> Optional[dict]:
     return meta
 
 
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _foreign_entries(folder: Path, meta: dict) -> List[str]:
+    """Entries of ``folder`` that are not ours as written: not listed in the manifest, not a plain file,
+    or changed since (size or SHA-256 differs from the manifest). A listed file that is gone is no loss."""
+    foreign = []
+    for p in sorted(folder.iterdir(), key=lambda q: q.name):
+        if p.name == MANIFEST:
+            continue
+        entry = meta["files"].get(p.name)
+        if not isinstance(entry, dict) or p.is_symlink() or not p.is_file():
+            foreign.append(p.name)
+            continue
+        try:
+            same = p.stat().st_size == entry.get("bytes") and _sha256(p) == entry.get("sha256")
+        except OSError:
+            same = False
+        if not same:
+            foreign.append(f"{p.name} (changed since the run)")
+    return foreign
+
+
 def is_result_folder(folder) -> bool:
-    """True if ``folder`` holds our ``manifest.json`` and nothing the manifest does not list."""
+    """True if ``folder`` holds our ``manifest.json`` and nothing else than the files it lists, unchanged
+    (same size and SHA-256 as recorded): a file edited after the run makes the folder the user's."""
     folder = Path(folder)
     meta = _read_manifest(folder) if folder.is_dir() else None
     if meta is None:
         return False
-    listed = set(meta["files"]) | {MANIFEST}
-    return all(p.name in listed for p in folder.iterdir())
+    return not _foreign_entries(folder, meta)
 
 
 def _check_out(ap: argparse.ArgumentParser, out: Path, overwrite: bool, option: str = "--out") -> Path:
@@ -169,8 +197,10 @@ def _check_out(ap: argparse.ArgumentParser, out: Path, overwrite: bool, option: 
         ap.error(f"argument {option}: {out} exists and is not a folder")
     if out.is_dir():
         entries = sorted(p.name for p in out.iterdir())
-        if entries and not is_result_folder(out) and not overwrite:
-            shown = ", ".join(entries[:5]) + (" ..." if len(entries) > 5 else "")
+        meta = _read_manifest(out) if entries else None
+        foreign = entries if meta is None else _foreign_entries(out, meta)
+        if foreign and not overwrite:
+            shown = ", ".join(foreign[:5]) + (" ..." if len(foreign) > 5 else "")
             ap.error(
                 f"argument {option}: {out} holds files that are not a torch-hsh result ({shown}); "
                 "choose another folder or pass --overwrite to replace the whole folder"
@@ -182,6 +212,11 @@ def _check_out(ap: argparse.ArgumentParser, out: Path, overwrite: bool, option: 
         ap.error(f"argument {option}: cannot create {out}: {anc} is not a folder")
     if not os.access(anc, os.W_OK | os.X_OK):
         ap.error(f"argument {option}: cannot create {out}: {anc} is not writable")
+    # os.access says yes to root everywhere (e.g. /proc): try it, with an empty folder removed at once
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".torch-hsh-probe.", dir=anc))
+    except OSError as err:
+        ap.error(f"argument {option}: cannot create {out}: {anc} does not accept new folders ({err.strerror})")
     return out
 
 
@@ -210,16 +245,36 @@ class _Staging:
         self.target = target
         self.path: Optional[Path] = None
         self.files: List[str] = []
+        self.created: List[Path] = []
 
     def __enter__(self) -> "_Staging":
-        self.target.parent.mkdir(parents=True, exist_ok=True)
-        self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".partial", dir=self.target.parent))
+        # the parent folders this run creates: removed again (if still empty) when it does not commit
+        self.created = []
+        anc = self.target.parent
+        while not anc.exists():
+            self.created.append(anc)
+            anc = anc.parent
+        try:
+            self.target.parent.mkdir(parents=True, exist_ok=True)
+            self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".partial",
+                                              dir=self.target.parent))
+        except BaseException:
+            self._remove_created()
+            raise
         os.chmod(self.path, 0o777 & ~_umask())  # mkdtemp makes 0700; a result folder is an ordinary folder
         return self
+
+    def _remove_created(self) -> None:
+        for d in self.created:  # deepest first; a folder something else has written into stays
+            try:
+                d.rmdir()
+            except OSError:
+                break
 
     def __exit__(self, *exc) -> None:
         if self.path is not None and self.path.exists():
             shutil.rmtree(self.path, ignore_errors=True)
+            self._remove_created()
 
     @property
     def folder(self) -> Path:

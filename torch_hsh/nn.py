@@ -78,6 +78,24 @@ class HSH(nn.Module):
     def extra_repr(self) -> str:
         return f"order={self.order}, num_functions={self.num_functions}"
 
+    # The order is kept in the state_dict (``_extra_state``) so that a checkpoint of another order
+    # does not load silently into this module.
+    def get_extra_state(self) -> Dict[str, Any]:
+        return {"order": self.order}
+
+    def set_extra_state(self, state: Any) -> None:
+        if not isinstance(state, dict) or "order" not in state:
+            raise ValueError(f"checkpoint for HSH: expected {{'order': P}} as its extra state, got {state!r}")
+        if state["order"] != self.order:
+            raise ValueError(f"checkpoint does not match this HSH: order={state['order']!r} (module has "
+                             f"order={self.order}); build it with HSH({state['order']!r})")
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints from before the order was kept (an empty state) load as before, strict mode included
+        if prefix + "_extra_state" not in state_dict:
+            state_dict[prefix + "_extra_state"] = self.get_extra_state()
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
 
 # --------------------------------------------------------------------------
 # Closed-form directional albedo tables

@@ -458,23 +458,19 @@ def load_diligent(
     normals = None
     ngt_file = folder / "Normal_gt.mat"
     if ngt_file.is_file():
-        import scipy.io
-
-        try:
-            mat = scipy.io.loadmat(str(ngt_file))
-        except Exception as err:  # scipy raises ValueError / IndexError / TypeError on corrupt files
-            raise ValueError(f"{ngt_file}: cannot read the MATLAB file ({type(err).__name__}: {err})") from err
-        if "Normal_gt" not in mat:
-            keys = [k for k in mat if not k.startswith("__")]
-            raise ValueError(f"{ngt_file}: no variable 'Normal_gt' (found {keys})")
-        try:
-            normals = np.asarray(mat["Normal_gt"], dtype=np.float64)
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"{ngt_file}: Normal_gt is not a numeric array ({err})") from err
+        normals = _read_normal_gt(ngt_file)
         if normals.shape != (height, width, 3):
             raise ValueError(f"{ngt_file}: Normal_gt has shape {normals.shape}, expected {(height, width, 3)}")
-        if not np.isfinite(normals[mask]).all():
-            raise ValueError(f"{ngt_file}: Normal_gt has NaN or Inf values inside the mask")
+        bad = ~np.isfinite(normals).all(axis=-1)
+        if bad.any():  # outside the mask too: the error maps and metrics use the whole array
+            raise ValueError(f"{ngt_file}: Normal_gt has NaN or Inf values at {int(bad.sum())} pixels "
+                             f"({int((bad & mask).sum())} inside the mask)")
+        inside = normals[mask]
+        off = np.abs(np.linalg.norm(inside, axis=-1) - 1.0) > _UNIT_TOL
+        if off.any():
+            raise ValueError(f"{ngt_file}: Normal_gt is not a unit normal at {int(off.sum())} of the {len(off)} "
+                             f"pixels inside the mask (|n| - 1 up to "
+                             f"{float(np.abs(np.linalg.norm(inside, axis=-1) - 1.0).max()):.3g})")
 
     def t(a):
         return torch.as_tensor(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
@@ -488,6 +484,61 @@ def load_diligent(
         names=list(names),
         path=folder,
     )
+
+
+#: Largest | |n| - 1 | accepted in ``Normal_gt.mat`` inside the mask (DiLiGenT's files: 1.4e-7).
+_UNIT_TOL = 1e-3
+
+# Run in a child process: a corrupt MAT file can crash scipy's reader (a segfault, not an exception).
+_MAT_READER = """
+import sys
+import numpy as np
+import scipy.io
+try:
+    mat = scipy.io.loadmat(sys.argv[1])
+except Exception as err:
+    sys.stderr.write(f"cannot read the MATLAB file ({type(err).__name__}: {err})")
+    sys.exit(3)
+if "Normal_gt" not in mat:
+    sys.stderr.write(f"no variable 'Normal_gt' (found {[k for k in mat if not k.startswith('__')]})")
+    sys.exit(3)
+try:
+    a = np.asarray(mat["Normal_gt"], dtype=np.float64)
+except (TypeError, ValueError) as err:
+    sys.stderr.write(f"Normal_gt is not a numeric array ({err})")
+    sys.exit(3)
+np.save(sys.stdout.buffer, a, allow_pickle=False)
+"""
+
+
+def _read_normal_gt(path: Path) -> np.ndarray:
+    """``Normal_gt`` of a MATLAB file, read by scipy in a child process so that a corrupt file gives a
+    ValueError naming it instead of killing this process."""
+    import io
+    import signal
+    import subprocess
+    import sys
+
+    try:
+        r = subprocess.run([sys.executable, "-c", _MAT_READER, str(path)], capture_output=True, timeout=600)
+    except subprocess.TimeoutExpired:
+        raise ValueError(f"{path}: reading the MATLAB file did not finish within 600 s") from None
+    if r.returncode == 0:
+        try:
+            return np.load(io.BytesIO(r.stdout), allow_pickle=False)
+        except ValueError as err:
+            raise ValueError(f"{path}: cannot read the MATLAB file ({err})") from err
+    msg = r.stderr.decode("utf-8", "replace").strip()
+    if r.returncode == 3:
+        raise ValueError(f"{path}: {msg}")
+    if r.returncode < 0:
+        try:
+            how = signal.Signals(-r.returncode).name
+        except ValueError:
+            how = f"signal {-r.returncode}"
+        raise ValueError(f"{path}: the MATLAB file is corrupt: scipy's reader crashed on it ({how})")
+    last = msg.splitlines()[-1] if msg else f"exit status {r.returncode}"
+    raise ValueError(f"{path}: cannot read the MATLAB file ({last})")
 
 
 def _to_numpy(x, name: str) -> np.ndarray:

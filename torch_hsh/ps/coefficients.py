@@ -149,6 +149,11 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
         else:
             coefs[pixels[sl]] = a.transpose(1, 2)
 
+    bar = None
+    if cfg.progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=P, desc="HSH coefficients", unit="px")
     with torch.no_grad():
-        for_chunks(P, step, run, shrink=cfg.chunk_auto)
+        for_chunks(P, step, run, shrink=cfg.chunk_auto, progress=bar)
     return Coefficients(coefficients=coefs, pixels=pixels, residual=resid)

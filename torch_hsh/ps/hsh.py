@@ -193,7 +193,8 @@ def solve_hsh(
             (default float32, about 3x faster than float64 with the same
             accuracy; ``None``: ``dtype``).
         seed: seed of the calibration subset.
-        progress: show tqdm progress bars (calibration starts, then chunks of pixels).
+        progress: show tqdm progress bars (the robust Lambertian start normals, the calibration starts, the
+            refinement's and the coefficient fit's chunks of pixels).
         valid: optional ``(L, H, W)`` / ``(L, P)`` bool: False excludes an
             observation (for example one known to be in a cast shadow). Non-finite
             and negative observations are always excluded; an excluded
@@ -290,7 +291,7 @@ def solve_hsh(
     cfg = dataclasses.replace(cfg, chunk_size=chunk, chunk_auto=cfg.chunk_size is None)
     obs.info["chunk_size"] = float(cfg.chunk)
     clock.lap("observations")
-    n_init = initial_normals(obs, init)  # 2
+    n_init = initial_normals(obs, init, progress=cfg.progress)  # 2
     n_start = n_init
     clock.lap("initialisation")
     cal = None

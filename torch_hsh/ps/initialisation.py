@@ -17,16 +17,27 @@ from .observations import _CHUNK, Observations
 __all__ = ["initial_normals"]
 
 
-def initial_normals(obs: Observations, init: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """Start normals ``(P, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``init``."""
+def initial_normals(obs: Observations, init: Optional[torch.Tensor] = None, progress: bool = False) -> torch.Tensor:
+    """Start normals ``(P, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``init``.
+
+    ``progress``: a tqdm bar over the pixels of the Lambertian solve (like the later stages)."""
     d = obs.data
     dev, dt = d.y.device, d.dtype
     if init is None:
         P = d.y.shape[0]
         n_start = torch.empty(P, 3, dtype=dt, device=dev)
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=P, desc="HSH start normals (robust Lambertian)", unit="px")
         for s in range(0, P, _CHUNK):
             y = d.y[s : s + _CHUNK].to(dt)
             n_start[s : s + _CHUNK], _ = _solve_flat(y, d.lights, trimmed_weights(y, 0.25, 0.10))
+            if bar is not None:
+                bar.update(y.shape[0])
+        if bar is not None:
+            bar.close()
     else:
         if not isinstance(init, torch.Tensor) or tuple(init.shape) != (*d.pixel_shape, 3):
             raise ValueError(
