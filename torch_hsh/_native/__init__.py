@@ -159,7 +159,8 @@ def parallel_rows(fn: Callable[..., int], n: int, *args) -> None:
             _state["pool_pid"] = os.getpid()
         step = -(-n // nt)
         step = -(-step // _BLOCK) * _BLOCK
-        futs = [_pool.submit(fn, r0, min(n, r0 + step), *args) for r0 in range(0, n, step)]
-        codes = [f.result() for f in futs]
+        starts = list(range(0, n, step))
+        futs = [_pool.submit(fn, r0, min(n, r0 + step), *args) for r0 in starts[1:]]
+        codes = [fn(0, min(n, step), *args)] + [f.result() for f in futs]  # the caller takes the first range
     if any(codes):
         raise MemoryError(f"{fn.__name__}: could not allocate the kernel's scratch tables")
