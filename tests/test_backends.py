@@ -346,3 +346,13 @@ def test_thread_pool_survives_fork():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "0"
+
+
+def test_order0_double_backward_is_zero():
+    """Order 0 is a constant: the create_graph fallbacks of the C kernels return zeros, not an error."""
+    a = _dirs(10, 50, special=False).requires_grad_(True)
+    b = _dirs(10, 51, special=False).requires_grad_(True)
+    for f in (lambda: torch_hsh.helmholtz_isotropic(a, b, 0), lambda: torch_hsh.helmholtz_isotropic(a, a, 0)):
+        y = f().sum() + 0.0 * (a.sum() + b.sum())
+        g = torch.autograd.grad(y, (a, b), create_graph=True)
+        assert all(torch.equal(x.detach(), torch.zeros_like(x)) for x in g)

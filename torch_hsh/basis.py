@@ -771,6 +771,8 @@ class _IsoCore(torch.autograd.Function):
             return tuple(grads)
         if torch.is_grad_enabled():  # create_graph: a differentiable backward through the torch kernel
             y = _iso_kernel_t(*xs, valid, ctx.order).t()
+            if not y.requires_grad:  # order 0: a constant
+                return tuple(torch.zeros_like(xs[i]) if i in need else None for i in range(7))
             gs = torch.autograd.grad(y, [xs[i] for i in need], gout, create_graph=True, allow_unused=True)
             for i, g in zip(need, gs):
                 grads[i] = torch.zeros_like(xs[i]) if g is None else g
@@ -820,6 +822,9 @@ class _IsoDirs(torch.autograd.Function):
             return None, None, None
         if torch.is_grad_enabled():  # create_graph: a differentiable backward through the torch kernel
             y = _iso_kernel_t(*_iso_geom_torch(wi, wo), ctx.order).t()
+            if not y.requires_grad:  # order 0: a constant
+                return tuple(torch.zeros_like(w) if nd else None for w, nd in zip((wi, wo), ctx.needs_input_grad[:2])) + (
+                    None,)
             need = [w for w, nd in zip((wi, wo), ctx.needs_input_grad[:2]) if nd]
             gs = iter(torch.autograd.grad(y, need, gout, create_graph=True, allow_unused=True))
             out = [None, None, None]

@@ -507,7 +507,10 @@ try:
 except (TypeError, ValueError) as err:
     sys.stderr.write(f"Normal_gt is not a numeric array ({err})")
     sys.exit(3)
-np.save(sys.stdout.buffer, a, allow_pickle=False)
+import io
+buf = io.BytesIO()  # np.save straight into a pipe can fail ("obtaining file position failed")
+np.save(buf, a, allow_pickle=False)
+sys.stdout.buffer.write(buf.getvalue())
 """
 
 
