@@ -42,6 +42,15 @@ autograd (chunk-wise checkpointing; double backward is supported by a full
 recomputation). Small batches and ``torch.func`` transforms use the plain
 autograd path. Outputs are always contiguous ``(..., K)``.
 
+Kernels (:func:`set_backend`, :func:`backend_status`): by default :func:`hsh` runs on
+sphericart-torch's real-SH kernel where it is installed, through the identity
+:math:`H_k(d) = \sqrt2\,\sigma_k\,Y_k(d')` with :math:`d' = (s'x, s'y, 2z - 1)`,
+:math:`s' = 2\sqrt{z/(1+z)}` and :math:`\sigma_k = -1` for odd negative m; the Helmholtz bases
+run on the CPU on the fused C kernels of :mod:`torch_hsh._native` (the whole isotropic basis per
+block of rows; the anisotropic pair products over the HSH). The pure-torch recurrences described
+above are the fallback and run inside ``torch.func`` transforms, ``torch.compile`` and double
+backward; both paths agree to rounding.
+
 Inputs are normalised inside the functions. **Directions strictly below the
 horizon (z < 0) and zero-length vectors evaluate to 0, with zero gradient**:
 the bases are supported on the upper hemisphere only, as a BRDF is.
