@@ -32,6 +32,12 @@ import numpy as np
 __all__ = ["add_rti_commands"]  # lights, rti, view
 
 
+
+def _add_exposure(p) -> None:
+    p.add_argument("--exposure", type=_float, default=None,
+                   help="factor on the radiance before the sRGB curve (default: 99.5th percentile of the head-on "
+                        "rendering maps to 0.8)")
+
 def _float(text: str) -> float:
     try:
         v = float(text)
@@ -70,9 +76,7 @@ def add_rti_commands(sub) -> None:
     q.add_argument("--terms", type=int, choices=(9, 16), default=9, help="number of HSH terms (default 9)")
     q.add_argument("--rti", default=None, help="write this .rti file (RTIViewer HSH)")
     q.add_argument("--relight", default=None, help="write this relight/OpenLIME folder (info.json + plane_*.jpg; 9 terms)")
-    q.add_argument("--exposure", type=_float, default=None,
-                   help="factor on the radiance before the sRGB curve (default: 99.5th percentile of the head-on "
-                        "rendering maps to 0.8)")
+    _add_exposure(q)
     q.add_argument("--linear", action="store_true", help="store linear values instead of sRGB-encoded ones")
     q.add_argument("--max-angle", default="auto",
                    help="fit the lights within this many degrees of the view (default auto: the largest angle of the "
@@ -89,9 +93,7 @@ def add_rti_commands(sub) -> None:
     )
     v.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
     v.add_argument("--out", required=True, help="output .html file (refused if it exists unless --overwrite)")
-    v.add_argument("--exposure", type=_float, default=None,
-                   help="factor on the radiance before the sRGB curve (default: 99.5th percentile of the head-on "
-                        "rendering maps to 0.8)")
+    _add_exposure(v)
     v.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     _add_common(v)
     v.set_defaults(handler=_run_view, parser=v)

@@ -447,6 +447,17 @@ def load_rti(
                               path=folder)
 
 
+
+def _output_folder(path, overwrite: bool) -> Path:
+    """Create the output folder ``path``; an existing non-empty one only with ``overwrite``."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"`path` {folder} exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
 def save_rti(
     path,
     images,
@@ -517,12 +528,7 @@ def save_rti(
                       UserWarning, stacklevel=2)
     scaled = np.clip(scaled, 0.0, 1.0)
     codes = np.rint((srgb_encode(scaled) if encode_srgb else scaled) * 255).astype(np.uint8)
-    folder = Path(path)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"`path` {folder} exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = _output_folder(path, overwrite)
     for name, c in zip(names, codes):
         f = folder / name
         if fmt == "png":
@@ -624,12 +630,7 @@ def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwr
     if fmt not in ("jpg", "png"):
         raise ValueError(f"`fmt` must be 'jpg' or 'png', got {fmt!r}")
     H, W = c.shape[:2]
-    folder = Path(path)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"`path` {folder} exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = _output_folder(path, overwrite)
     planes = c.transpose(0, 1, 3, 2).reshape(H, W, 27)  # plane index 3 j + colour
     lo = planes.min(axis=(0, 1))
     span = planes.max(axis=(0, 1)) - lo
