@@ -62,9 +62,9 @@ $(MUTATION_STAMP): $(STAMP) pyproject.toml
 	$(PY) -m pip install -q -e ".[mutation]"
 	touch $(MUTATION_STAMP)
 
-# Mutation testing (mutmut) of basis.py, fitting.py and _integrate.py, each judged by its own tests only
-# (tools/mutate.py; scratch copies and mutmut's cache in build/mutmut/<module>/). Not part of CI: basis.py
-# alone takes about 40 min on 2 loaded cores. ARGS="basis" runs one module, ARGS="basis --max-children 2".
+# Mutation testing (mutmut) of kernel.py (the basis kernel), fitting.py and _integrate.py, each judged by its own tests only
+# (tools/mutate.py; scratch copies and mutmut's cache in build/mutmut/<module>/). Not part of CI: kernel.py
+# alone takes about 40 min on 2 loaded cores. ARGS="kernel" runs one module, ARGS="kernel --max-children 2".
 mutate: $(MUTATION_STAMP)
 	$(PY) tools/mutate.py $(ARGS)
 

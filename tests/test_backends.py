@@ -1,6 +1,6 @@
 """The kernel paths behind the bases agree: sphericart + fused C kernels ("auto") and pure torch.
 
-What is checked here (test_basis.py runs all its value/gradient tests on both paths as well):
+What is checked here (test_kernel.py runs all its value/gradient tests on both paths as well):
 
 * values in float64 to 1e-12 and gradients to 1e-10 between the paths, on random directions and
   on the special points (pole, horizon, just above the horizon, below it, zero vectors);
@@ -21,7 +21,7 @@ import pytest
 import torch
 
 import torch_hsh
-from torch_hsh import basis
+from torch_hsh import kernel as basis
 
 F64 = torch.float64
 HAS_SPHERICART = basis._sphericart_module() is not None

@@ -7,7 +7,7 @@ import scipy.special as sp
 import torch
 
 from torch_hsh import render as R
-from torch_hsh.basis import helmholtz_isotropic
+from torch_hsh.kernel import helmholtz_isotropic
 from torch_hsh.bases.westin import real_sh
 from torch_hsh.brdf import Lambertian
 from torch_hsh.envmap import (

@@ -204,7 +204,7 @@ def test_bad_inputs_give_clear_errors():
 @pytest.mark.parametrize("order", [0, 1, 2, 3, 5])
 def test_mixed_design_matches_factorised_design(order):
     """Horner evaluation of Psi = Phi B^T equals the explicit design (incl. below-horizon normals)."""
-    from torch_hsh.basis import num_isotropic
+    from torch_hsh.kernel import num_isotropic
     from torch_hsh.ps.design import MixedDesign
     from torch_hsh.ps.design import _design_factors
 
@@ -388,7 +388,7 @@ class _HostSyncCounter:
 
 def test_per_pixel_iterations_synchronise_once_per_active_set_update():
     """CUDA sync budget of the per-pixel pass: one active-set compaction per IRLS-LM iteration (and one in its LM step)."""
-    from torch_hsh.basis import num_isotropic
+    from torch_hsh.kernel import num_isotropic
     from torch_hsh.ps.refinement import refine_shared_chunk
 
     n, l = _scene(120, 24, 21)

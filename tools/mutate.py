@@ -1,13 +1,13 @@
 """Mutation testing of the core modules with mutmut (``make mutate``; not part of CI).
 
 Each module is mutated in its own scratch copy of the project (``build/mutmut/<module>/``) whose
-``[tool.mutmut]`` section selects only that module's test file, so that a mutant of ``basis.py`` is
-judged by ``tests/test_basis.py`` alone. mutmut's result cache lives in that copy: a second run only
+``[tool.mutmut]`` section selects only that module's test file, so that a mutant of ``kernel.py`` is
+judged by ``tests/test_kernel.py`` alone. mutmut's result cache lives in that copy: a second run only
 re-tests mutants whose function or tests changed.
 
     python tools/mutate.py                 # all three modules
-    python tools/mutate.py basis           # one module
-    python tools/mutate.py basis --max-children 2
+    python tools/mutate.py kernel           # one module
+    python tools/mutate.py kernel --max-children 2
 
 The summary (killed / survived / timed out / ... and the score) is printed per module and written to
 ``build/mutmut/<module>/summary.txt``; ``mutmut results`` / ``mutmut show NAME`` run inside that folder
@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # module -> the tests that judge its mutants (slow end-to-end tests are left out: they cover the same
 # functions and would multiply the run time)
 MODULES = {
-    "basis": ("torch_hsh/basis.py", ["tests/test_basis.py"]),
+    "kernel": ("torch_hsh/kernel.py", ["tests/test_kernel.py"]),
     "fitting": ("torch_hsh/fitting.py", ["tests/test_fitting.py", "-m", "not slow"]),
     "_integrate": ("torch_hsh/_integrate.py", ["tests/test_fitting.py", "-m", "not slow"]),
 }

@@ -2,7 +2,7 @@
 __version__ = "0.1.0"
 
 from ._checks import MAX_ANISOTROPIC_ORDER, MAX_ORDER, set_validation
-from .basis import (
+from .kernel import (
     anisotropic_indices,
     backend_status,
     get_backend,
@@ -19,7 +19,7 @@ from .basis import (
     num_isotropic,
 )
 from .frames import isotropic_triple, local_frame, reflect, to_local, to_world
-from . import bases, frames, io  # noqa: F401
+from . import bases, frames, io, kernel  # noqa: F401
 from .bases import available_bases, get_basis
 from .nn import HSH, HelmholtzBRDF
 from .quadrature import direction_quadrature, gauss_legendre, isotropic_quadrature, monte_carlo_directions
@@ -48,3 +48,15 @@ from . import ps  # noqa: E402,F401  (photometric-stereo solvers: ps.solve_hsh, 
 from .ps import solve_hsh  # noqa: E402,F401
 from . import envmap  # noqa: E402,F401  (environment lighting: EnvironmentMap, render_envmap)
 from .envmap import EnvironmentLighting, EnvironmentMap, render_envmap, render_envmap_reference  # noqa: E402,F401
+
+
+#: Old module paths, still importable with a DeprecationWarning (see the module named by each).
+_DEPRECATED_MODULES = {"basis": "kernel"}
+
+
+def __getattr__(name):
+    if name in _DEPRECATED_MODULES:
+        import importlib
+
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

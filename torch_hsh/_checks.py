@@ -8,7 +8,7 @@ globally with :func:`torch_hsh.set_validation` for hot loops on GPU.
 from __future__ import annotations
 
 import operator
-from typing import Optional, Sequence, Tuple
+from typing import Dict, Optional, Sequence, Tuple, Union
 
 import torch
 
@@ -114,6 +114,69 @@ def check_same(tensors: Sequence[Tuple[str, torch.Tensor]]) -> None:
             raise ValueError(f"`{n}` is on {t.device} but `{n0}` is on {t0.device}; move them to the same device")
         if t.dtype != t0.dtype:
             raise TypeError(f"`{n}` has dtype {t.dtype} but `{n0}` has dtype {t0.dtype}; use the same dtype")
+
+
+Dim = Union[int, str, None]
+
+
+def check_shape(x, name: str, *shapes: Sequence[Dim], sizes: Optional[Dict[str, int]] = None) -> Dict[str, int]:
+    """Check that ``x`` has one of ``shapes``; the one shape check of the package (one message format).
+
+    Each shape is a sequence of dimensions: an ``int`` (exactly that size), a ``str`` (a named size:
+    equal wherever the name recurs, and to ``sizes[name]`` when ``sizes`` has it), ``None`` (any
+    size), or ``"*"`` as the first entry (any number of leading dimensions). The first shape that fits
+    wins; its named sizes are returned merged into ``sizes`` (a new dict), so that later checks of
+    other arguments can be bound to them.
+
+    Raises ``TypeError`` when ``x`` has no shape, and ``ValueError`` in the form
+    ``` `lights` must have shape (L, 3), got (5, 2)``` (with ``where L = 5`` when a bound size
+    decided it).
+
+    Example:
+        >>> import torch
+        >>> from torch_hsh._checks import check_shape
+        >>> check_shape(torch.zeros(4, 3), "lights", ("L", 3))
+        {'L': 4}
+        >>> check_shape(torch.zeros(4), "intensities", ("L",), ("L", "C"), sizes={"L": 4})
+        {'L': 4}
+    """
+    shape = getattr(x, "shape", None)
+    if shape is None:
+        raise TypeError(f"`{name}` must be a tensor, got {type(x).__name__}")
+    shape = tuple(int(s) for s in shape)
+    known = dict(sizes or {})
+    for want in shapes:
+        bound = _match_shape(shape, tuple(want), known)
+        if bound is not None:
+            return bound
+    used = sorted({d for want in shapes for d in want if isinstance(d, str) and d != "*" and d in known})
+    where = f" where {', '.join(f'{d} = {known[d]}' for d in used)}" if used else ""
+    alts = " or ".join(_shape_str(w) for w in shapes)
+    raise ValueError(f"`{name}` must have shape {alts}{where}, got {shape}")
+
+
+def _match_shape(shape: Tuple[int, ...], want: Tuple[Dim, ...], known: Dict[str, int]) -> Optional[Dict[str, int]]:
+    """The named sizes of ``shape`` against one pattern (see :func:`check_shape`), or None if it does not fit."""
+    if want[:1] == ("*",):
+        want = want[1:]
+        if len(shape) < len(want):
+            return None
+        shape = shape[len(shape) - len(want):]
+    elif len(shape) != len(want):
+        return None
+    bound = dict(known)
+    for s, d in zip(shape, want):
+        if isinstance(d, str):
+            if bound.setdefault(d, s) != s:
+                return None
+        elif d is not None and s != d:
+            return None
+    return bound
+
+
+def _shape_str(want: Sequence[Dim]) -> str:
+    parts = ["..." if d == "*" else ("_" if d is None else str(d)) for d in want]
+    return "(" + ", ".join(parts) + ("," if len(parts) == 1 else "") + ")"
 
 
 def broadcast_shapes(named: Sequence[Tuple[str, torch.Size]]) -> torch.Size:

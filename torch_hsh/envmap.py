@@ -84,7 +84,7 @@ import numpy as np
 import torch
 
 from ._checks import broadcast_shapes, check_dirs, check_order, check_same, check_tensor
-from .basis import hsh, iso_pair_gather
+from .kernel import hsh, iso_pair_gather
 from .bases.westin import _sh_gather, _sh_polar, complex_powers, real_sh
 from .render import brdf_cosine, order_from_num_coefficients
 

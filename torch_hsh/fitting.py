@@ -63,7 +63,7 @@ from typing import Callable, Dict, Iterator, Optional, Tuple, Union
 
 import torch
 
-from . import basis as _hb
+from . import kernel as _hb
 from ._checks import broadcast_shapes, check_dirs, check_same, check_tensor, validation_enabled
 from .bases import Basis, get_basis
 from .bases.helmholtz import HelmholtzAnisotropic, HelmholtzIsotropic

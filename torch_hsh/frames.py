@@ -2,7 +2,7 @@ r"""Local shading frames.
 
 World-space light/view directions plus a normal (and optionally a tangent)
 become local directions with ``z`` along the normal, the convention of every
-basis in :mod:`torch_hsh.basis`. Everything is batched over leading dimensions
+basis in :mod:`torch_hsh.kernel`. Everything is batched over leading dimensions
 and differentiable.
 
 Conventions:

@@ -15,7 +15,7 @@ bases they call validate their inputs in plain Python (``isinstance`` checks,
 TorchScript cannot compile. Use ``torch.jit.trace`` (or ``torch.compile``)
 instead.
 
-Conventions are those of :mod:`torch_hsh.basis`: directions in the local
+Conventions are those of :mod:`torch_hsh.kernel`: directions in the local
 frame with ``z`` along the normal; a direction below the horizon (``z < 0``) or
 a zero vector makes the BRDF 0.
 """
@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from ._checks import MAX_ANISOTROPIC_ORDER, check_order, check_tensor
-from .basis import (
+from .kernel import (
     anisotropic_indices,
     helmholtz_anisotropic,
     helmholtz_isotropic,

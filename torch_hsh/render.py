@@ -42,7 +42,7 @@ from typing import Callable, Optional, Union
 import torch
 
 from ._checks import check_dirs, check_order, check_same, check_tensor
-from .basis import helmholtz_isotropic_world, num_isotropic
+from .kernel import helmholtz_isotropic_world, num_isotropic
 from .frames import local_frame
 
 __all__ = [

@@ -28,7 +28,7 @@ from typing import Optional, Union
 
 import torch
 
-from . import basis as _hb
+from . import kernel as _hb
 from ._checks import MAX_ANISOTROPIC_ORDER, check_order, check_tensor
 from .bases import Basis, get_basis
 from .bases.helmholtz import HelmholtzAnisotropic, HelmholtzIsotropic

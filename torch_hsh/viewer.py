@@ -45,7 +45,7 @@ MODES = ("relit", "normals", "albedo", "confidence", "error")
 
 def _basis_program(order: int) -> List[str]:
     """Straight-line statements ``name = expr`` computing ``B0 .. B{K-1}`` from zi, zo, a, rho, sio."""
-    from .basis import _iso_gather, _polar_consts
+    from .kernel import _iso_gather, _polar_consts
 
     diag, alpha, beta, col = _polar_consts(order)
     i1, j1, i2, j2, qcol, g_scale = _iso_gather(order)
@@ -97,7 +97,7 @@ def glsl_isotropic_basis(order: int) -> str:
 
     ``zi = n . l``, ``zo = n . v`` (clamped to ``[0, 1]``), ``a = l . v - zi zo``,
     ``rho = (1 - zi^2)(1 - zo^2)``, ``sio = sqrt(zi / (1 + zi)) sqrt(zo / (1 + zo))``: the
-    arguments of the isotropic kernel of :mod:`torch_hsh.basis`; ``K = (P+1)(P+2)(P+3)/6``.
+    arguments of the isotropic kernel of :mod:`torch_hsh.kernel`; ``K = (P+1)(P+2)(P+3)/6``.
 
     Example:
         >>> "void hbasis" in glsl_isotropic_basis(2)

@@ -9,7 +9,7 @@ compiler and the machine, and later calls load the cached library. The rows are 
 over ``torch.get_num_threads()`` threads (ctypes releases the GIL).
 
 Where no compiler is found, the compilation fails, or ``TORCH_HSH_NATIVE=0`` is set, the
-pure-torch kernels of :mod:`torch_hsh.basis` run instead (same values to rounding).
+pure-torch kernels of :mod:`torch_hsh.kernel` run instead (same values to rounding).
 :func:`native_status` says which is in use and why.
 """
 from __future__ import annotations

@@ -17,7 +17,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from ..basis import _const
+from ..kernel import _const
 from .westin import broadcast_pair, complex_powers, unit_dirs
 
 __all__ = ["pair_frame", "azimuth_table", "gather_rows"]

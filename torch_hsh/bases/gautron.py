@@ -35,7 +35,7 @@ from functools import lru_cache
 
 import torch
 
-from ..basis import _const, _hsh_flat, _polar_consts, _polar_table, _safe_s
+from ..kernel import _const, _hsh_flat, _polar_consts, _polar_table, _safe_s
 from ._base import Basis, register_basis
 from ._isotropic import azimuth_table, gather_rows, pair_frame
 from .westin import MAX_PRODUCT_ORDER, broadcast_pair, pair_table

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from .. import basis as _b
+from .. import kernel as _b
 from .._checks import MAX_ANISOTROPIC_ORDER
 from ._base import Basis, register_basis
 

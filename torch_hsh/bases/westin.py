@@ -46,7 +46,7 @@ from typing import List, Sequence, Tuple
 import torch
 
 from .._checks import broadcast_shapes, check_dirs, check_order, check_same
-from ..basis import _const
+from ..kernel import _const
 from ._base import Basis, register_basis
 
 __all__ = ["real_sh", "WestinSH", "WestinSHIsotropic", "pair_table", "unit_dirs"]

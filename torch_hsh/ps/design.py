@@ -33,7 +33,7 @@ from typing import List
 import numpy as np
 import torch
 
-from ..basis import _polar_consts, _polar_table_t, _safe_s, azimuthal_factors, isotropic_indices, num_isotropic
+from ..kernel import _polar_consts, _polar_table_t, _safe_s, azimuthal_factors, isotropic_indices, num_isotropic
 
 __all__ = ["MixedDesign", "mixed_design_matrix", "ridge_profile"]
 

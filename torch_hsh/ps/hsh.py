@@ -48,7 +48,7 @@ from typing import Dict, Optional, Sequence, Union
 
 import torch
 
-from ..basis import num_isotropic
+from ..kernel import num_isotropic
 from ._common import ROW_CHUNK, row_sum, scatter_pixels
 from .calibration import calibrate, fixed_calibration
 from .coefficients import fit_coefficients

@@ -13,7 +13,7 @@ from typing import Dict, Optional, Sequence
 
 import torch
 
-from ..basis import _polar_table, isotropic_indices
+from ..kernel import _polar_table, isotropic_indices
 from ..render import order_from_num_coefficients, render_coefficients
 from .lambertian import robust_lambertian
 from .observations import prepare_inputs

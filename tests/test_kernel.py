@@ -1,4 +1,4 @@
-"""Tests of torch_hsh.basis: values, orthonormality, symmetries, gradients and input checks."""
+"""Tests of torch_hsh.kernel: values, orthonormality, symmetries, gradients and input checks."""
 from __future__ import annotations
 
 import math
@@ -557,7 +557,7 @@ def test_validation_switch_skips_value_checks_only():
 # --------------------------------------------------------------------------
 @pytest.fixture
 def tiny_chunks(monkeypatch):
-    import torch_hsh.basis as basis_mod
+    import torch_hsh.kernel as basis_mod
 
     monkeypatch.setattr(basis_mod, "_CHUNK_ELEMS", 1)  # one-row chunks
     return basis_mod
@@ -611,7 +611,7 @@ def test_gradgradcheck_plain_path():
 # tables, exact horizon/pole geometry, deep leading shapes, partial gradients
 # --------------------------------------------------------------------------
 def test_counts_are_python_ints_and_index_tables_are_long():
-    from torch_hsh.basis import MAX_ANISOTROPIC_ORDER
+    from torch_hsh.kernel import MAX_ANISOTROPIC_ORDER
 
     for P in range(0, 9):
         assert type(num_isotropic(P)) is int and type(num_anisotropic(min(P, 4))) is int
