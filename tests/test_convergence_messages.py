@@ -1,6 +1,6 @@
 """The messages of :class:`torch_hsh.ConvergenceError` say what actually failed (issue 23, section 5).
 
-The refinement loop (:func:`torch_hsh._integrate.adaptive`) is driven by a fake rule whose changes are
+The refinement loop (:func:`torch_hsh.fitting.convergence.adaptive`) is driven by a fake rule whose changes are
 chosen per direction, so each scenario is exact and fast.
 """
 import re
@@ -8,7 +8,7 @@ import re
 import pytest
 import torch
 
-from torch_hsh._integrate import ConvergenceError, RuleResult, adaptive
+from torch_hsh.fitting.convergence import ConvergenceError, RuleResult, adaptive
 
 
 def _rule(nt, nph):

@@ -576,7 +576,7 @@ def test_sphere_domain_basis_projects_brdf_extended_by_zero():
 
 
 # --------------------------------------------------------------------------
-# convergence control (torch_hsh._integrate)
+# convergence control (torch_hsh.fitting.rules, torch_hsh.fitting.convergence)
 # --------------------------------------------------------------------------
 def _ggx_cos(r=0.3, f0=0.04):
     from torch_hsh.brdf import CookTorranceGGX
@@ -588,7 +588,7 @@ def _ggx_cos(r=0.3, f0=0.04):
 @pytest.mark.parametrize("basis,reduced", [(ISO, True), (ISO, False), (ANI, False), ("koenderink_zernike", True)])
 def test_azimuthal_lowpass_equals_fine_rule(basis, reduced):
     """The FFT low-pass shortcut gives the same sums as evaluating the basis on the fine azimuthal grid."""
-    from torch_hsh._integrate import rule_sums
+    from torch_hsh.fitting.rules import rule_sums
 
     f = _ggx_cos(0.5)
     P = 2

@@ -402,7 +402,7 @@ def test_merl_round_trip_accuracy_close_to_the_analytic_projection(tmp_path):
     a linear theta_h index fail it. (phi_d mirrored is invisible here: the Blinn-Phong lobe is symmetric.)
     """
     from torch_hsh import fitting as F
-    from torch_hsh._integrate import rule_sums
+    from torch_hsh.fitting.rules import rule_sums
     from torch_hsh.bases import get_basis
     from torch_hsh.brdf import BlinnPhong
 

@@ -33,8 +33,14 @@ ROOT = Path(__file__).resolve().parents[1]
 # functions and would multiply the run time)
 MODULES = {
     "kernel": ("torch_hsh/kernel.py", ["tests/test_kernel.py"]),
-    "fitting": ("torch_hsh/fitting.py", ["tests/test_fitting.py", "-m", "not slow"]),
-    "_integrate": ("torch_hsh/_integrate.py", ["tests/test_fitting.py", "-m", "not slow"]),
+    # the fitting package (torch_hsh/fitting.py before the split) and its product rules and their
+    # refinement (torch_hsh/_integrate.py before the split)
+    "fitting": (("torch_hsh/fitting/__init__.py", "torch_hsh/fitting/arguments.py", "torch_hsh/fitting/projection.py",
+                 "torch_hsh/fitting/least_squares.py", "torch_hsh/fitting/coefficients.py",
+                 "torch_hsh/fitting/normal_exitance.py", "torch_hsh/fitting/albedo.py"),
+                ["tests/test_fitting.py", "-m", "not slow"]),
+    "_integrate": (("torch_hsh/fitting/rules.py", "torch_hsh/fitting/convergence.py"),
+                   ["tests/test_fitting.py", "-m", "not slow"]),
 }
 
 
@@ -44,6 +50,7 @@ def _toml_list(xs):
 
 def prepare(name: str) -> Path:
     path, tests = MODULES[name]
+    paths = [path] if isinstance(path, str) else list(path)
     work = ROOT / "build" / "mutmut" / name
     work.mkdir(parents=True, exist_ok=True)
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
@@ -55,7 +62,7 @@ def prepare(name: str) -> Path:
     text += (
         "\n[tool.mutmut]\n"
         'source_paths = ["torch_hsh"]\n'
-        f'only_mutate = ["{path}"]\n'
+        f"only_mutate = {_toml_list(paths)}\n"
         f"pytest_add_cli_args_test_selection = {_toml_list(tests)}\n"
         'pytest_add_cli_args = ["-p", "no:cacheprovider", "-q"]\n'
         'process_isolation = "forkserver"\n'

@@ -79,7 +79,7 @@ def acc_padded(acc: torch.Tensor, P: int) -> np.ndarray:
 def converged_iso(f, P, tol, cutoff):
     """Acc ``{basis: (P+1,)}`` of one isotropic BRDF on the rule converged for the Helmholtz basis, and the info."""
     from torch_hsh.fitting import brdf_accuracy, energy_accuracy
-    from torch_hsh._integrate import rule_sums
+    from torch_hsh.fitting.rules import rule_sums
 
     _, info = brdf_accuracy(f, P, "helmholtz_isotropic", tol=tol, grazing_cutoff=cutoff, strict=False,
                             return_info=True)

@@ -42,7 +42,7 @@ import _common as C  # noqa: E402
 import compactness  # noqa: E402
 
 from torch_hsh.fitting import brdf_accuracy  # noqa: E402
-from torch_hsh._integrate import rule_sums  # noqa: E402
+from torch_hsh.fitting.rules import rule_sums  # noqa: E402
 from torch_hsh.bases import get_basis  # noqa: E402
 from torch_hsh.io.merl import MERL_SHAPE, tabulate_merl, write_merl  # noqa: E402
 

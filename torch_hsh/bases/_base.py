@@ -52,7 +52,7 @@ class Basis(ABC):
         ``order`` is a trigonometric polynomial of degree ``<= D`` in ``phi_i`` and in
         ``phi_o`` (for an isotropic basis: in ``phi_o - phi_i``). The convergence-controlled
         projection then low-passes the BRDF in azimuth and evaluates the basis on
-        ``2D + 2`` azimuths only (see :mod:`torch_hsh._integrate`). ``None`` (the
+        ``2D + 2`` azimuths only (see :mod:`torch_hsh.fitting.rules`). ``None`` (the
         default for user bases) disables that shortcut; results are the same.
         """
         return None

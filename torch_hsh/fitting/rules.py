@@ -1,4 +1,4 @@
-r"""Convergence-controlled product rules for :func:`torch_hsh.fitting.project` and friends.
+r"""Product rules over :math:`\Omega_i\times\Omega_o`: the fixed node sets and the sums of one rule.
 
 Conventions
 -----------
@@ -23,7 +23,7 @@ Method
   product, degree ``<= 2D``), and the basis is evaluated on the coarse grid only.
   The basis cost no longer grows with ``n_phi``, which is what sharp lobes need
   (their azimuthal width shrinks towards the grazing mirror configuration).
-* **Error estimate and refinement.** :func:`adaptive` doubles ``n_phi`` while the
+* **Error estimate and refinement** (:func:`torch_hsh.fitting.convergence.adaptive`). It doubles ``n_phi`` while the
   result changes by more than ``tol / 2`` between ``n_phi`` and ``2 n_phi``, then
   checks ``n_theta`` against ``ceil(1.5 n_theta)`` the same way, and repeats. The
   estimate is the sum of the last two changes (the error of the returned coarser
@@ -39,37 +39,77 @@ evaluations, in chunks of about ``2**21`` samples; basis evaluations
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Iterator, List, Optional, Tuple
 
 import torch
 
-from .quadrature import gauss_legendre
+from ..bases import Basis
+from ..quadrature import (
+    direction_quadrature,
+    gauss_legendre,
+    isotropic_directions,
+    isotropic_quadrature,
+    monte_carlo_directions,
+)
+from .arguments import _call_brdf, _sizes
 
-__all__ = ["ConvergenceError", "ConvergenceWarning", "RuleResult", "rule_sums", "adaptive"]
+__all__ = ["RuleResult", "rule_sums"]
 
 _TWO_PI = 2.0 * math.pi
 
 
-class ConvergenceError(RuntimeError):
-    """A convergence-controlled integral did not reach its tolerance.
-
-    Attributes:
-        estimate: the error estimate reached (same units as ``tol``).
-        result: the best value computed (what ``strict=False`` returns).
-        info: dict with the rule sizes, evaluation count and refinement history.
-    """
-
-    def __init__(self, message: str, estimate: float, result=None, info: Optional[dict] = None):
-        super().__init__(message)
-        self.estimate = estimate
-        self.result = result
-        self.info = info or {}
-
-
-class ConvergenceWarning(UserWarning):
-    """Issued instead of :class:`ConvergenceError` when ``strict=False``."""
+def _nodes(
+    b: Basis,
+    P: int,
+    method: str,
+    n_theta,
+    n_phi,
+    n_samples,
+    reduced,
+    seed,
+    generator,
+    dtype,
+    device,
+    chunk: int,
+) -> Iterator[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """Yield ``(wi, wo, w)`` chunks of a rule over Omega_i x Omega_o (upper hemispheres)."""
+    if method == "quadrature":
+        if reduced is None:
+            reduced = bool(b.isotropic)
+        reduced = bool(reduced)
+        if reduced and not b.isotropic:
+            raise ValueError(
+                f"`reduced=True` needs an isotropic basis; '{b.name}' is not isotropic (use reduced=False)"
+            )
+        nt, npf = _sizes(P, n_theta, n_phi)
+        if reduced:
+            ci, co, dp, w = isotropic_quadrature(nt, npf, dtype=dtype, device=device)
+            for s in range(0, ci.shape[0], chunk):
+                wi, wo = isotropic_directions(ci[s : s + chunk], co[s : s + chunk], dp[s : s + chunk])
+                yield wi, wo, w[s : s + chunk]
+        else:
+            d, wd = direction_quadrature(nt, npf, "hemisphere", dtype=dtype, device=device)
+            nd = d.shape[0]
+            total = nd * nd
+            for s in range(0, total, chunk):
+                idx = torch.arange(s, min(s + chunk, total), device=d.device)
+                i, o = idx // nd, idx % nd
+                yield d[i], d[o], wd[i] * wd[o]
+    elif method == "monte_carlo":
+        if reduced:
+            raise ValueError("`reduced=True` applies to method='quadrature' only")
+        if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 1:
+            raise ValueError(f"`n_samples` must be a positive integer, got {n_samples!r}")
+        if generator is None and seed is not None:
+            generator = torch.Generator().manual_seed(int(seed))
+        di, _ = monte_carlo_directions(n_samples, generator=generator, seed=None, dtype=dtype, device=device)
+        do, _ = monte_carlo_directions(n_samples, generator=generator, seed=None, dtype=dtype, device=device)
+        w = torch.full((n_samples,), _TWO_PI**2 / n_samples, dtype=dtype, device=di.device)
+        for s in range(0, n_samples, chunk):
+            yield di[s : s + chunk], do[s : s + chunk], w[s : s + chunk]
+    else:
+        raise ValueError(f"`method` must be 'quadrature' or 'monte_carlo', got {method!r}")
 
 
 @dataclass
@@ -82,12 +122,6 @@ class RuleResult:
     n_phi: int
     evaluations: int
     scalar: bool = False
-
-
-def _call(brdf, wi, wo):
-    from .fitting import _call_brdf
-
-    return _call_brdf(brdf, wi, wo)
 
 
 def _lowpass(F: torch.Tensor, D: int, M: int, dim: int) -> torch.Tensor:
@@ -144,7 +178,7 @@ def _reduced(brdf, b, P, z, wz, phi, M, D, use_lp, want_a, want_E, chunk):
     for s in range(0, nt, rows):
         zi = z[s : s + rows, None, None]
         wi, wo, shape = _grid_dirs(zi, zo, torch.zeros((), dtype=z.dtype, device=z.device), phi[None, None, :])
-        v = _call(brdf, wi, wo)
+        v = _call_brdf(brdf, wi, wo)
         scalar = v.dim() == 1
         F = _channels_last(v, shape)  # (C, r, nt, n_phi)
         W = (_TWO_PI * wz[s : s + rows, None] * wz[None, :]) * (_TWO_PI / n_phi)  # (r, nt)
@@ -175,7 +209,7 @@ def _full(brdf, b, P, z, wz, phi, M, D, use_lp, want_a, want_E, chunk):
     for s in range(0, nt, rows):
         zi = z[s : s + rows, None, None, None]
         wi, wo, shape = _grid_dirs(zi, z[None, None, :, None], phi[None, :, None, None], phi[None, None, None, :])
-        v = _call(brdf, wi, wo)
+        v = _call_brdf(brdf, wi, wo)
         scalar = v.dim() == 1
         F = _channels_last(v, shape)  # (C, r, n_phi_i, nt_o, n_phi_o)
         W = (wz[s : s + rows, None] * wz[None, :]) * (_TWO_PI / n_phi) ** 2  # (r, nt_o)
@@ -207,120 +241,3 @@ def _basis_dot(b, P, wi, wo, G, chunk):
         part = G[:, s : s + step] @ B.to(G.dtype)
         acc = part if acc is None else acc + part
     return acc
-
-
-def _rel(x: torch.Tensor, y: torch.Tensor) -> float:
-    """Largest per-channel relative L2 change ``||x - y|| / ||y||`` (last dim = values)."""
-    d = (x - y).detach().reshape(x.shape[0], -1).norm(dim=-1)
-    n = y.detach().reshape(y.shape[0], -1).norm(dim=-1).clamp(min=torch.finfo(y.dtype).tiny)
-    return float((d / n).max())
-
-
-def adaptive(evaluate: Callable[[int, int], RuleResult], metric: Callable[[RuleResult, RuleResult], float],
-             n_theta: int, n_phi: int, tol: float, max_evaluations: int, strict: bool, what: str,
-             divergence_hint: str) -> Tuple[RuleResult, Dict[str, object]]:
-    """Refine ``(n_theta, n_phi)`` until ``metric`` between successive rules is ``<= tol / 2`` in each direction.
-
-    Args:
-        evaluate: ``(n_theta, n_phi) -> RuleResult``.
-        metric: change between a finer and a coarser result (a float, same units as ``tol``).
-        n_theta, n_phi: starting sizes.
-        tol: target of the error estimate.
-        max_evaluations: budget of BRDF evaluations over all rules.
-        strict: raise :class:`ConvergenceError` (True) or warn (False) when the budget runs out.
-        what: name of the quantity in messages.
-        divergence_hint: appended to the divergence message.
-
-    Returns:
-        ``(result, info)``; ``info`` has ``error_estimate``, ``n_theta``, ``n_phi``,
-        ``evaluations``, ``converged`` and ``history`` (list of ``(n_theta, n_phi, change)``).
-    """
-    used = 0
-    history: List[Tuple[str, int, int, float]] = []
-
-    def run(nt, nph):
-        nonlocal used
-        r = evaluate(nt, nph)
-        used += r.evaluations
-        return r
-
-    cur = run(n_theta, n_phi)
-    per = cur.evaluations / float(n_theta * n_theta * n_phi)  # 1 (reduced) or n_phi (4-D)
-    full4d = per > 1.5
-
-    def size(nt, nph):
-        return nt * nt * nph * (nph if full4d else 1)
-
-    e_phi = e_theta = float("inf")
-    streak = {"theta": 0}
-    last = {"theta": None}
-
-    def note(direction, e):
-        prev = last[direction]
-        streak[direction] = streak[direction] + 1 if (prev is not None and prev > 0 and e > 0.7 * prev
-                                                       and e > tol / 2) else 0
-        last[direction] = e
-        if streak[direction] >= 3:
-            info = _info(cur, used, e_phi + e_theta, False, history)
-            # only the changes of this direction: the n_phi refinements in between are a different sequence
-            mine = [h[3] for h in history if h[0] == direction][-(streak[direction] + 1):]
-            raise ConvergenceError(
-                f"{what}: the integral appears divergent: refining n_{direction} does not shrink the change "
-                f"(successive n_{direction} refinements changed the result by "
-                f"{', '.join(f'{x:.3g}' for x in mine)}). {divergence_hint}",
-                estimate=e, result=cur, info=info)
-
-    need = 0
-    while True:
-        converged = False
-        need = size(cur.n_theta, 2 * cur.n_phi)
-        if used + need > max_evaluations:
-            break
-        fine = run(cur.n_theta, 2 * cur.n_phi)
-        e_phi = metric(fine, cur)
-        history.append(("phi", fine.n_theta, fine.n_phi, e_phi))
-        if e_phi > tol / 2:  # at fixed n_theta the azimuthal trapezoid always converges: no divergence test
-            cur = fine
-            continue
-        nt2 = int(math.ceil(1.5 * cur.n_theta))
-        need = size(nt2, cur.n_phi)
-        if used + need > max_evaluations:
-            break
-        fine_t = run(nt2, cur.n_phi)
-        e_theta = metric(fine_t, cur)
-        history.append(("theta", fine_t.n_theta, fine_t.n_phi, e_theta))
-        if e_theta > tol / 2:
-            note("theta", e_theta)
-            cur = fine_t
-            continue
-        converged = True
-        break
-    finite = [e for e in (e_phi, e_theta) if math.isfinite(e)]
-    est = sum(finite) if finite else float("inf")  # an unchecked direction adds nothing it could quantify
-    info = _info(cur, used, est, converged, history)
-    if not converged:
-        # Say what failed: the test is per direction (each change <= tol / 2), so the sum of the two
-        # changes (the estimate) can be below tol while one direction still fails it.
-        failing = []
-        for d, e in (("phi", e_phi), ("theta", e_theta)):
-            if not math.isfinite(e):
-                failing.append(f"n_{d} was not yet checked at the last rule")
-            elif e > tol / 2:
-                failing.append(f"the last refinement of n_{d} changed the result by {e:.3g}, above tol/2 = {tol / 2:g}")
-        if not failing:  # cannot happen with the loop above; kept so the message is never empty
-            failing.append("the next refinement could not be afforded")
-        msg = (f"{what} did not converge within max_evaluations={max_evaluations}: "
-               f"{'; '.join(failing)} (each direction must change by at most tol/2 for tol={tol:g}). "
-               f"The next refinement of the rule n_theta={cur.n_theta}, n_phi={cur.n_phi} needs "
-               f"{need} evaluations, {max_evaluations - used} are left (error estimate of the returned rule, "
-               f"the sum of the last changes in both directions: {est:.3g}). Raise max_evaluations, loosen tol, "
-               f"or pass strict=False to accept the result with that estimate. {divergence_hint}")
-        if strict:
-            raise ConvergenceError(msg, estimate=est, result=cur, info=info)
-        warnings.warn(msg, ConvergenceWarning, stacklevel=3)
-    return cur, info
-
-
-def _info(r: RuleResult, used: int, est: float, converged: bool, history) -> Dict[str, object]:
-    return {"error_estimate": est, "n_theta": r.n_theta, "n_phi": r.n_phi, "evaluations": used,
-            "converged": converged, "history": list(history)}
