@@ -863,7 +863,24 @@ def _run_fit(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
                "num_functions": int(coeffs.shape[-1]), "grazing_cutoff": args.grazing_cutoff,
                "relative_error": rel.tolist(), "energy_accuracy": arrays["energy_accuracy"].tolist(),
                "runtime_s": time.perf_counter() - t, **extra}
-    # ---- write: missing parent folders are created now, and removed again if the write fails
+    _write_fit_npz(out, coeffs, arrays, summary)
+    say(f"order {args.order}: {coeffs.shape[-1]} functions x 3 channels, {summary['runtime_s']:.1f} s")
+    say(f"relative L2 error on the table's samples (R, G, B): {', '.join(f'{v:.4g}' for v in rel.tolist())}"
+        + (" (solid-angle weighted)" if args.method == "samples" else " (sqrt(1 - Acc(P)))"))
+    if "relative_error_unweighted" in extra:
+        say("  every measured bin weighted alike: "
+            f"{', '.join(f'{v:.4g}' for v in extra['relative_error_unweighted'])}")
+    if float(rel.max()) > 0.5:
+        say("  most of the table's L2 norm is in what order P cannot represent: a sharp specular peak, or the "
+            "grazing growth of a raw microfacet table; a higher --order or --grazing-cutoff (e.g. 0.1) tells which")
+    say(f"Acc(P') for P' = 0..{args.order} (mean over RGB): "
+        f"{', '.join(f'{v:.4f}' for v in arrays['energy_accuracy'].mean(0).tolist())}")
+    say(f"wrote {out}")
+    return _jsonable(summary)
+
+
+def _write_fit_npz(out: Path, coeffs, arrays, summary) -> None:
+    """Write the fit's ``.npz`` atomically; missing parent folders are created now, and removed again if the write fails."""
     created = []
     anc = out.parent
     while not anc.exists():
@@ -889,19 +906,6 @@ def _run_fit(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
             except OSError:
                 break
         raise
-    say(f"order {args.order}: {coeffs.shape[-1]} functions x 3 channels, {summary['runtime_s']:.1f} s")
-    say(f"relative L2 error on the table's samples (R, G, B): {', '.join(f'{v:.4g}' for v in rel.tolist())}"
-        + (" (solid-angle weighted)" if args.method == "samples" else " (sqrt(1 - Acc(P)))"))
-    if "relative_error_unweighted" in extra:
-        say("  every measured bin weighted alike: "
-            f"{', '.join(f'{v:.4g}' for v in extra['relative_error_unweighted'])}")
-    if float(rel.max()) > 0.5:
-        say("  most of the table's L2 norm is in what order P cannot represent: a sharp specular peak, or the "
-            "grazing growth of a raw microfacet table; a higher --order or --grazing-cutoff (e.g. 0.1) tells which")
-    say(f"Acc(P') for P' = 0..{args.order} (mean over RGB): "
-        f"{', '.join(f'{v:.4f}' for v in arrays['energy_accuracy'].mean(0).tolist())}")
-    say(f"wrote {out}")
-    return _jsonable(summary)
 
 
 def _fit_samples(brdf, args):

@@ -125,26 +125,32 @@ def adaptive(evaluate: Callable[[int, int], RuleResult], metric: Callable[[RuleR
     est = sum(finite) if finite else float("inf")  # an unchecked direction adds nothing it could quantify
     info = _info(cur, used, est, converged, history)
     if not converged:
-        # Say what failed: the test is per direction (each change <= tol / 2), so the sum of the two
-        # changes (the estimate) can be below tol while one direction still fails it.
-        failing = []
-        for d, e in (("phi", e_phi), ("theta", e_theta)):
-            if not math.isfinite(e):
-                failing.append(f"n_{d} was not yet checked at the last rule")
-            elif e > tol / 2:
-                failing.append(f"the last refinement of n_{d} changed the result by {e:.3g}, above tol/2 = {tol / 2:g}")
-        if not failing:  # cannot happen with the loop above; kept so the message is never empty
-            failing.append("the next refinement could not be afforded")
-        msg = (f"{what} did not converge within max_evaluations={max_evaluations}: "
-               f"{'; '.join(failing)} (each direction must change by at most tol/2 for tol={tol:g}). "
-               f"The next refinement of the rule n_theta={cur.n_theta}, n_phi={cur.n_phi} needs "
-               f"{need} evaluations, {max_evaluations - used} are left (error estimate of the returned rule, "
-               f"the sum of the last changes in both directions: {est:.3g}). Raise max_evaluations, loosen tol, "
-               f"or pass strict=False to accept the result with that estimate. {divergence_hint}")
+        msg = _unconverged_message(what, e_phi, e_theta, tol, max_evaluations, cur, need, used, est, divergence_hint)
         if strict:
             raise ConvergenceError(msg, estimate=est, result=cur, info=info)
         warnings.warn(msg, ConvergenceWarning, stacklevel=3)
     return cur, info
+
+
+def _unconverged_message(what: str, e_phi: float, e_theta: float, tol: float, max_evaluations: int, cur: RuleResult,
+                         need: int, used: int, est: float, divergence_hint: str) -> str:
+    """Say what failed when the budget ran out before both directions converged."""
+    # The test is per direction (each change <= tol / 2), so the sum of the two
+    # changes (the estimate) can be below tol while one direction still fails it.
+    failing = []
+    for d, e in (("phi", e_phi), ("theta", e_theta)):
+        if not math.isfinite(e):
+            failing.append(f"n_{d} was not yet checked at the last rule")
+        elif e > tol / 2:
+            failing.append(f"the last refinement of n_{d} changed the result by {e:.3g}, above tol/2 = {tol / 2:g}")
+    if not failing:  # cannot happen with the loop in adaptive; kept so the message is never empty
+        failing.append("the next refinement could not be afforded")
+    return (f"{what} did not converge within max_evaluations={max_evaluations}: "
+            f"{'; '.join(failing)} (each direction must change by at most tol/2 for tol={tol:g}). "
+            f"The next refinement of the rule n_theta={cur.n_theta}, n_phi={cur.n_phi} needs "
+            f"{need} evaluations, {max_evaluations - used} are left (error estimate of the returned rule, "
+            f"the sum of the last changes in both directions: {est:.3g}). Raise max_evaluations, loosen tol, "
+            f"or pass strict=False to accept the result with that estimate. {divergence_hint}")
 
 
 def _info(r: RuleResult, used: int, est: float, converged: bool, history) -> Dict[str, object]:

@@ -95,6 +95,42 @@ def fit(
     """
     b = _basis(basis)
     P = b.check_order(order)
+    y, layout, N = _check_samples(wi, wo, values)
+    Bn = y.shape[0]
+    _check_solver_options(ridge, ridge_growth, method, rcond)
+    out_dtype = values.dtype
+    f64 = torch.float64
+    dev = values.device
+    A = b.evaluate(wi.to(f64), wo.to(f64), P)  # (N, K) or (Bd, N, K)
+    K = A.shape[-1]
+    if A.dim() == 2:
+        A = A[None]
+    y64 = y.to(f64)
+    wt = _sample_weights(weights, values, N, Bn)
+    lam_diag = None
+    if ridge > 0:
+        L = b.function_orders(P).to(device=dev, dtype=f64)
+        lam_diag = ridge * (1.0 + L) ** ridge_growth
+    coeffs, solver, cond = _solve(A, y64, wt, lam_diag, method, rcond)  # coeffs: (Bn, K, C)
+    res = _LAYOUT[layout](coeffs.transpose(-1, -2)).to(out_dtype)  # from (Bn, C, K)
+    if not return_info:
+        return res
+    info = _diagnostics(A, coeffs, y64, wt, values, layout, out_dtype)
+    info.update(condition=cond, solver=solver, num_samples=N, num_functions=K)
+    return res, info
+
+
+#: The result layout from its ``(B, C, ...)`` batch form, by the shape of ``values`` (see :func:`fit`).
+_LAYOUT = {
+    "K": lambda t: t[0, 0],
+    "CK": lambda t: t[0],
+    "BK": lambda t: t[:, 0],
+    "BCK": lambda t: t,
+}
+
+
+def _check_samples(wi: torch.Tensor, wo: torch.Tensor, values: torch.Tensor):
+    """Check the directions and values; returns ``values`` as ``(Bv, N, C)``, the output layout and ``N``."""
     check_dirs(wi, "wi")
     check_dirs(wo, "wo")
     check_same([("wi", wi), ("wo", wo)])
@@ -129,7 +165,10 @@ def fit(
         )
     if per_brdf and y.shape[0] != lead[0] and lead[0] != 1:
         raise ValueError(f"`values` has batch {y.shape[0]} but the directions have batch {lead[0]}")
-    Bn = y.shape[0]
+    return y, layout, N
+
+
+def _check_solver_options(ridge, ridge_growth, method, rcond) -> None:
     if isinstance(ridge, bool) or not isinstance(ridge, (int, float)) or not math.isfinite(ridge) or ridge < 0:
         raise ValueError(f"`ridge` must be a finite number >= 0, got {ridge!r}")
     if isinstance(ridge_growth, bool) or not isinstance(ridge_growth, (int, float)) or not math.isfinite(ridge_growth) or ridge_growth < 0:
@@ -139,39 +178,34 @@ def fit(
     if rcond is not None and (not isinstance(rcond, (int, float)) or isinstance(rcond, bool) or rcond < 0):
         raise ValueError(f"`rcond` must be a number >= 0 or None, got {rcond!r}")
 
-    out_dtype = values.dtype
+
+def _sample_weights(weights: Optional[torch.Tensor], values: torch.Tensor, N: int, Bn: int) -> Optional[torch.Tensor]:
+    """The per-sample weights as float64 ``(1 | Bn, N)``, checked; ``None`` without weights."""
+    if weights is None:
+        return None
     f64 = torch.float64
-    dev = values.device
-    A = b.evaluate(wi.to(f64), wo.to(f64), P)  # (N, K) or (Bd, N, K)
-    K = A.shape[-1]
-    if A.dim() == 2:
-        A = A[None]
-    y64 = y.to(f64)
-    if weights is not None:
-        check_tensor(weights, "weights", min_dims=1)
-        if weights.device != values.device:
-            raise ValueError(f"`weights` is on {weights.device} but `values` is on {values.device}")
-        if weights.dim() == 1 and weights.shape[0] == N:
-            wt = weights.to(f64)[None]
-        elif weights.dim() == 2 and weights.shape[1] == N and weights.shape[0] in (1, Bn):
-            wt = weights.to(f64)
-        else:
-            raise ValueError(f"`weights` must be (N,) or (B, N) with N={N}, B={Bn}; got {tuple(weights.shape)}")
-        if validation_enabled():
-            if bool((wt < 0).any()):
-                raise ValueError("`weights` must be non-negative")
-            empty = (wt == 0).all(dim=-1)
-            if bool(empty.any()):
-                where = "" if wt.shape[0] == 1 else f" for batch entry {int(empty.nonzero()[0, 0])}"
-                raise ValueError(f"`weights` are all zero{where}: no sample takes part in the fit")
+    check_tensor(weights, "weights", min_dims=1)
+    if weights.device != values.device:
+        raise ValueError(f"`weights` is on {weights.device} but `values` is on {values.device}")
+    if weights.dim() == 1 and weights.shape[0] == N:
+        wt = weights.to(f64)[None]
+    elif weights.dim() == 2 and weights.shape[1] == N and weights.shape[0] in (1, Bn):
+        wt = weights.to(f64)
     else:
-        wt = None
+        raise ValueError(f"`weights` must be (N,) or (B, N) with N={N}, B={Bn}; got {tuple(weights.shape)}")
+    if validation_enabled():
+        if bool((wt < 0).any()):
+            raise ValueError("`weights` must be non-negative")
+        empty = (wt == 0).all(dim=-1)
+        if bool(empty.any()):
+            where = "" if wt.shape[0] == 1 else f" for batch entry {int(empty.nonzero()[0, 0])}"
+            raise ValueError(f"`weights` are all zero{where}: no sample takes part in the fit")
+    return wt
 
-    lam_diag = None
-    if ridge > 0:
-        L = b.function_orders(P).to(device=dev, dtype=f64)
-        lam_diag = ridge * (1.0 + L) ** ridge_growth
 
+def _solve(A, y64, wt, lam_diag, method, rcond):
+    """``(coeffs (Bn, K, C), solver, condition)``: the normal equations by Cholesky, else the augmented lstsq."""
+    Bn = y64.shape[0]
     Aw = A if wt is None else A * wt[..., None]  # W A
     G = A.transpose(-1, -2) @ Aw  # (Bg, K, K), Bg in {1, Bd, Bw}
     rhs = Aw.transpose(-1, -2) @ y64 if Aw.shape[0] == Bn or Aw.shape[0] == 1 else None  # (Bn, K, C)
@@ -179,10 +213,6 @@ def fit(
         raise ValueError(f"direction/weight batch {Aw.shape[0]} does not match values batch {Bn}")
     if lam_diag is not None:
         G = G + torch.diag_embed(lam_diag).expand_as(G)
-
-    coeffs = None
-    solver = None
-    cond = None
     if method in ("auto", "cholesky"):
         Lc, chol_info = torch.linalg.cholesky_ex(G)
         d = torch.diagonal(Lc, dim1=-2, dim2=-1).abs()
@@ -191,41 +221,39 @@ def fit(
             cond = (d.max(-1).values / d.min(-1).values.clamp(min=1e-300)) ** 2
             ok = bool((cond < 1e12).all()) or method == "cholesky"
         if ok:
-            coeffs = torch.cholesky_solve(rhs, Lc)  # (Bn, K, C)
-            solver = "cholesky"
-        elif method == "cholesky":
+            return torch.cholesky_solve(rhs, Lc), "cholesky", cond
+        if method == "cholesky":
             raise ValueError("the normal equations are singular (Cholesky failed); use ridge > 0 or method='lstsq'")
-    if coeffs is None:
-        sw = None if wt is None else torch.sqrt(wt)
-        Aa = A if sw is None else A * sw[..., None]
-        ya = y64 if sw is None else y64 * sw[..., None]
-        Aa = Aa.expand(Bn, N, K) if Aa.shape[0] == 1 else Aa
-        ya = ya.expand(Aa.shape[0], N, ya.shape[-1]) if ya.shape[0] == 1 else ya
-        if lam_diag is not None:
-            Aa = torch.cat([Aa, torch.diag_embed(torch.sqrt(lam_diag)).expand(Aa.shape[0], K, K)], dim=1)
-            ya = torch.cat([ya, ya.new_zeros(ya.shape[0], K, ya.shape[-1])], dim=1)
-        rc = rcond if rcond is not None else torch.finfo(f64).eps * max(Aa.shape[1], K)
-        if Aa.device.type == "cpu":
-            coeffs = torch.linalg.lstsq(Aa, ya, rcond=rc, driver="gelsd").solution
-        else:
-            coeffs = torch.linalg.pinv(Aa, rtol=rc) @ ya
-        solver = "lstsq"
-        sv = torch.linalg.svdvals(Aa)
-        cond = (sv[..., 0] / sv[..., -1].clamp(min=1e-300)) ** 2 if Aa.shape[1] >= K else torch.full(
-            sv.shape[:-1], float("inf"), dtype=f64, device=dev)
-    # coeffs: (Bn, K, C)
-    coeffs_out = coeffs.transpose(-1, -2)  # (Bn, C, K)
-    if layout == "K":
-        res = coeffs_out[0, 0]
-    elif layout == "CK":
-        res = coeffs_out[0]
-    elif layout == "BK":
-        res = coeffs_out[:, 0]
+    coeffs, cond = _solve_lstsq(A, y64, wt, lam_diag, rcond)
+    return coeffs, "lstsq", cond
+
+
+def _solve_lstsq(A, y64, wt, lam_diag, rcond):
+    """Rank-revealing least squares of the augmented system ``[sqrt(W) A; sqrt(Lambda)]``; ``(coeffs, condition)``."""
+    f64 = torch.float64
+    Bn, N, K = y64.shape[0], A.shape[1], A.shape[-1]
+    sw = None if wt is None else torch.sqrt(wt)
+    Aa = A if sw is None else A * sw[..., None]
+    ya = y64 if sw is None else y64 * sw[..., None]
+    Aa = Aa.expand(Bn, N, K) if Aa.shape[0] == 1 else Aa
+    ya = ya.expand(Aa.shape[0], N, ya.shape[-1]) if ya.shape[0] == 1 else ya
+    if lam_diag is not None:
+        Aa = torch.cat([Aa, torch.diag_embed(torch.sqrt(lam_diag)).expand(Aa.shape[0], K, K)], dim=1)
+        ya = torch.cat([ya, ya.new_zeros(ya.shape[0], K, ya.shape[-1])], dim=1)
+    rc = rcond if rcond is not None else torch.finfo(f64).eps * max(Aa.shape[1], K)
+    if Aa.device.type == "cpu":
+        coeffs = torch.linalg.lstsq(Aa, ya, rcond=rc, driver="gelsd").solution
     else:
-        res = coeffs_out
-    res = res.to(out_dtype)
-    if not return_info:
-        return res
+        coeffs = torch.linalg.pinv(Aa, rtol=rc) @ ya
+    sv = torch.linalg.svdvals(Aa)
+    cond = (sv[..., 0] / sv[..., -1].clamp(min=1e-300)) ** 2 if Aa.shape[1] >= K else torch.full(
+        sv.shape[:-1], float("inf"), dtype=f64, device=y64.device)
+    return coeffs, cond
+
+
+def _diagnostics(A, coeffs, y64, wt, values, layout: str, out_dtype) -> Dict[str, object]:
+    """Residuals, weighted RMS and relative residual of the fit, in the layout of ``values``/the result."""
+    N = y64.shape[1]
     pred = A @ coeffs  # (Bn, N, C)
     r = y64 - pred
     wr = torch.ones_like(r[..., :1]) if wt is None else wt[..., None].expand(r.shape[0], N, 1)
@@ -234,20 +262,10 @@ def fit(
     wsum = wr.sum(1).clamp(min=1e-300)
     rms = torch.sqrt(rss / wsum)
     rel = torch.sqrt(rss / yss.clamp(min=1e-300))
-    shape_fix = {
-        "K": lambda t: t[0, 0],
-        "CK": lambda t: t[0],
-        "BK": lambda t: t[:, 0],
-        "BCK": lambda t: t,
-    }[layout]
+    shape_fix = _LAYOUT[layout]
     resid = r.reshape(values.shape) if layout != "CK" else r[0]
-    info: Dict[str, object] = {
+    return {
         "residuals": resid.to(out_dtype),
         "rms": shape_fix(rms).to(out_dtype),
         "relative_residual": shape_fix(rel).to(out_dtype),
-        "condition": cond,
-        "solver": solver,
-        "num_samples": N,
-        "num_functions": K,
     }
-    return res, info

@@ -36,6 +36,7 @@ import math
 import os
 import pathlib
 import tempfile
+from dataclasses import dataclass
 from typing import Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -748,10 +749,43 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
     """
     import time
 
-    from .._checks import check_tensor
+    t0 = time.perf_counter()
+    brdf, b, P = _check_fit_arguments(brdf, order, basis, ridge, grazing_cutoff, chunk_size)
+    wgt = _fit_weights(brdf, weights)
+    sums = _normal_equations(brdf, b, P, wgt, grazing_cutoff, chunk_size, progress)
+    if bool((sums.nused == 0).any()):
+        raise ValueError("no usable sample in the table (every bin is unmeasured, has zero weight or lies below "
+                         "the horizon)")
+    K = b.num_functions(P)
+    dev = sums.rhs.device
+    orders = b.function_orders(P).to(dev)
+    per_order = torch.zeros(3, P + 1, dtype=torch.float64, device=dev)
+    coeffs, cond = _solve_orders(sums, ridge, orders, torch.ones(K, dtype=torch.bool, device=dev))
+    full = torch.ones(K, dtype=torch.bool, device=dev)
+    for p in range(P + 1):
+        sel = orders <= p
+        a_p = coeffs if p == P else _solve_orders(sums, ridge, orders, sel)[0]
+        per_order[:, p] = _relative_error(a_p, sel, sums.G, sums.rhs, sums.yy)
+    if not return_info:
+        return coeffs
+    info = {
+        "relative_error": per_order[:, P].clone(),
+        "relative_error_unweighted": _relative_error(coeffs, full, sums.Gu, sums.rhsu, sums.yyu),
+        "relative_error_per_order": per_order,
+        "energy": sums.yy,
+        "accuracy": 1.0 - per_order ** 2,
+        "num_samples": int(sums.nused[0]),
+        "coverage": float(sums.wsum[0] / (4 * math.pi ** 2)),
+        "condition": cond,
+        "runtime_s": time.perf_counter() - t0,
+    }
+    return coeffs, info
+
+
+def _check_fit_arguments(brdf, order, basis, ridge, grazing_cutoff, chunk_size):
+    """``(MERLBRDF, basis, P)`` after the argument checks of :func:`fit_merl` (a path is read here)."""
     from ..bases import get_basis
 
-    t0 = time.perf_counter()
     if isinstance(brdf, (str, os.PathLike)):
         brdf = read_merl(brdf)
     if not isinstance(brdf, MERLBRDF):
@@ -767,31 +801,56 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
         raise ValueError(f"`grazing_cutoff` must be a number in [0, 1) (a cosine) or None, got {grazing_cutoff!r}")
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise ValueError(f"`chunk_size` must be a positive integer, got {chunk_size!r}")
+    return brdf, b, P
+
+
+def _fit_weights(brdf: "MERLBRDF", weights: Optional[torch.Tensor]) -> torch.Tensor:
+    """The sample weights of :func:`fit_merl`: the solid-angle weights, or ``weights`` checked, as float64."""
+    from .._checks import check_tensor
+
+    shape = brdf.shape
+    dev = brdf.raw.device
+    if weights is None:
+        return merl_solid_angle_weights(shape, device=dev)
+    check_tensor(weights, "weights")
+    if tuple(weights.shape) != shape:
+        raise ValueError(f"`weights` must have the table's shape {shape}, got {tuple(weights.shape)}")
+    wgt = weights.to(device=dev, dtype=torch.float64)
+    if not bool(torch.isfinite(wgt).all()) or bool((wgt < 0).any()):
+        raise ValueError("`weights` must be finite and >= 0")
+    return wgt
+
+
+@dataclass
+class _NormalSums:
+    """Weighted (and unweighted, suffix ``u``) normal equations of :func:`fit_merl` and the sample sums."""
+
+    G: torch.Tensor  # (1 | 3, K, K): one matrix when every channel measures the same bins
+    Gu: torch.Tensor
+    rhs: torch.Tensor  # (3, K)
+    rhsu: torch.Tensor
+    yy: torch.Tensor  # (3,) weighted energy of the samples
+    yyu: torch.Tensor
+    wsum: torch.Tensor  # (3,) weight of the used samples
+    nused: torch.Tensor  # (3,) number of used samples
+
+
+def _normal_equations(brdf: "MERLBRDF", b, P: int, wgt: torch.Tensor, grazing_cutoff, chunk_size: int,
+                      progress: bool) -> _NormalSums:
+    """Accumulate the normal equations over the table's bins, in chunks of ``theta_h`` rows."""
     shape = brdf.shape
     dev = brdf.raw.device
     f64 = torch.float64
-    if weights is None:
-        wgt = merl_solid_angle_weights(shape, device=dev)
-    else:
-        check_tensor(weights, "weights")
-        if tuple(weights.shape) != shape:
-            raise ValueError(f"`weights` must have the table's shape {shape}, got {tuple(weights.shape)}")
-        wgt = weights.to(device=dev, dtype=f64)
-        if not bool(torch.isfinite(wgt).all()) or bool((wgt < 0).any()):
-            raise ValueError("`weights` must be finite and >= 0")
     table = brdf.table.to(f64)  # (3, nh, nd, npd)
     measured = brdf.measured
     shared = bool((measured == measured[:1]).all())  # one normal matrix for all channels
     nh, nd, npd = shape
     K = b.num_functions(P)
     G = torch.zeros(1 if shared else 3, K, K, dtype=f64, device=dev)
-    Gu = torch.zeros_like(G)
-    rhs = torch.zeros(3, K, dtype=f64, device=dev)
-    rhsu = torch.zeros_like(rhs)
-    yy = torch.zeros(3, dtype=f64, device=dev)
-    yyu = torch.zeros(3, dtype=f64, device=dev)
-    wsum = torch.zeros(3, dtype=f64, device=dev)
-    nused = torch.zeros(3, dtype=torch.long, device=dev)
+    z3 = torch.zeros(3, dtype=f64, device=dev)
+    S = _NormalSums(G, torch.zeros_like(G), torch.zeros(3, K, dtype=f64, device=dev),
+                    torch.zeros(3, K, dtype=f64, device=dev), z3.clone(), z3.clone(), z3.clone(),
+                    torch.zeros(3, dtype=torch.long, device=dev))
     # Every isotropic reciprocal basis function takes the same value at phi_d and pi - phi_d (a mirror
     # of both directions, then wi <-> wo), and the bins k and N_pd - 1 - k are mirror images: the basis
     # is evaluated on half of the phi_d bins and each pair of bins is summed with its own weights.
@@ -808,6 +867,10 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
         from tqdm.auto import tqdm
 
         bar = tqdm(total=nh * nd * npd, desc=f"fit_merl P={P}", unit="sample", unit_scale=True, file=sys.stderr)
+
+    def fold(t):  # (..., npd) -> (..., half): bin k plus its mirror N_pd - 1 - k
+        return t.index_select(-1, lo) + t.index_select(-1, hi) * pair
+
     try:
         for s in range(0, nh, rows):
             sl = slice(s, min(s + rows, nh))
@@ -821,14 +884,10 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
                 y = torch.where((zmin >= float(grazing_cutoff))[None], y, torch.zeros_like(y))
             y = torch.where(m, y, torch.zeros_like(y))
             mf = m.to(f64)
-            yy += (y * y * w).sum((1, 2, 3))
-            yyu += (y * y).sum((1, 2, 3))
-            wsum += (mf * w).sum((1, 2, 3))
-            nused += m.sum((1, 2, 3))
-
-            def fold(t):  # (..., npd) -> (..., half): bin k plus its mirror N_pd - 1 - k
-                return t.index_select(-1, lo) + t.index_select(-1, hi) * pair
-
+            S.yy += (y * y * w).sum((1, 2, 3))
+            S.yyu += (y * y).sum((1, 2, 3))
+            S.wsum += (mf * w).sum((1, 2, 3))
+            S.nused += m.sum((1, 2, 3))
             wm = fold(mf * w).reshape(3, -1)  # (3, n) weights of the half-grid samples
             um = fold(mf).reshape(3, -1)
             yw = fold(y * w).reshape(3, -1)
@@ -839,59 +898,40 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
                 wi, wo = half_diff_to_dirs(TH[..., :half], torch.zeros_like(TH[..., :half]), TD[..., :half],
                                            PD[..., :half])
                 A = b.evaluate(wi.reshape(-1, 3)[idx], wo.reshape(-1, 3)[idx], P).to(f64)  # (n, K)
-                for c in range(G.shape[0]):
-                    G[c] += A.T @ (A * wm[c, idx, None])
-                    Gu[c] += A.T @ (A * um[c, idx, None])
-                rhs += yw[:, idx] @ A
-                rhsu += yu[:, idx] @ A
+                for c in range(S.G.shape[0]):
+                    S.G[c] += A.T @ (A * wm[c, idx, None])
+                    S.Gu[c] += A.T @ (A * um[c, idx, None])
+                S.rhs += yw[:, idx] @ A
+                S.rhsu += yu[:, idx] @ A
             if bar is not None:
                 bar.update((sl.stop - sl.start) * nd * npd)
     finally:
         if bar is not None:
             bar.close()
-    if bool((nused == 0).any()):
-        raise ValueError("no usable sample in the table (every bin is unmeasured, has zero weight or lies below "
-                         "the horizon)")
-    Gs = G.expand(3, K, K)
-    eye = torch.eye(K, dtype=f64, device=dev)
-    orders = b.function_orders(P).to(dev)
+    return S
 
-    def solve(sel):
-        Gk = Gs[:, sel][:, :, sel] + ridge * eye[: int(sel.sum()), : int(sel.sum())]
-        L, bad = torch.linalg.cholesky_ex(Gk)
-        d = torch.diagonal(L, dim1=-2, dim2=-1).abs() if not bool(bad.any()) else None
-        cond = float(((d.max(-1).values / d.min(-1).values.clamp(min=1e-300)) ** 2).max()) if d is not None else math.inf
-        if d is None or cond > 1e12:
-            raise ValueError(
-                f"the normal equations of the order-{int(orders[sel].max())} fit are singular or ill-conditioned "
-                f"(condition {cond:.3g}): the {int(nused.min())} usable samples do not determine the {int(sel.sum())} "
-                f"functions; pass ridge > 0 (on the command line: --ridge, e.g. 1e-6) or lower the order")
-        a = torch.cholesky_solve(rhs[:, sel, None], L)[..., 0]  # (3, k)
-        return a, cond
 
-    def rel(a, sel, Gm, r, n2):
-        Gk = Gm.expand(3, K, K)[:, sel][:, :, sel]
-        res = n2 - 2 * (a * r[:, sel]).sum(-1) + torch.einsum("ck,ckl,cl->c", a, Gk, a)
-        return torch.sqrt(res.clamp(min=0.0) / n2.clamp(min=1e-300))
+def _solve_orders(S: _NormalSums, ridge: float, orders: torch.Tensor, sel: torch.Tensor):
+    """Coefficients ``(3, k)`` of the functions ``sel`` by Cholesky, and the condition of their normal matrix."""
+    K = S.rhs.shape[-1]
+    Gs = S.G.expand(3, K, K)
+    eye = torch.eye(K, dtype=torch.float64, device=S.rhs.device)
+    Gk = Gs[:, sel][:, :, sel] + ridge * eye[: int(sel.sum()), : int(sel.sum())]
+    L, bad = torch.linalg.cholesky_ex(Gk)
+    d = torch.diagonal(L, dim1=-2, dim2=-1).abs() if not bool(bad.any()) else None
+    cond = float(((d.max(-1).values / d.min(-1).values.clamp(min=1e-300)) ** 2).max()) if d is not None else math.inf
+    if d is None or cond > 1e12:
+        raise ValueError(
+            f"the normal equations of the order-{int(orders[sel].max())} fit are singular or ill-conditioned "
+            f"(condition {cond:.3g}): the {int(S.nused.min())} usable samples do not determine the {int(sel.sum())} "
+            f"functions; pass ridge > 0 (on the command line: --ridge, e.g. 1e-6) or lower the order")
+    a = torch.cholesky_solve(S.rhs[:, sel, None], L)[..., 0]  # (3, k)
+    return a, cond
 
-    per_order = torch.zeros(3, P + 1, dtype=f64, device=dev)
-    coeffs, cond = solve(torch.ones(K, dtype=torch.bool, device=dev))
-    full = torch.ones(K, dtype=torch.bool, device=dev)
-    for p in range(P + 1):
-        sel = orders <= p
-        a_p = coeffs if p == P else solve(sel)[0]
-        per_order[:, p] = rel(a_p, sel, G, rhs, yy)
-    if not return_info:
-        return coeffs
-    info = {
-        "relative_error": per_order[:, P].clone(),
-        "relative_error_unweighted": rel(coeffs, full, Gu, rhsu, yyu),
-        "relative_error_per_order": per_order,
-        "energy": yy,
-        "accuracy": 1.0 - per_order ** 2,
-        "num_samples": int(nused[0]),
-        "coverage": float(wsum[0] / (4 * math.pi ** 2)),
-        "condition": cond,
-        "runtime_s": time.perf_counter() - t0,
-    }
-    return coeffs, info
+
+def _relative_error(a: torch.Tensor, sel: torch.Tensor, Gm: torch.Tensor, r: torch.Tensor, n2: torch.Tensor):
+    """``||y - A a|| / ||y||`` per channel from the normal equations ``Gm``, ``r`` and ``n2 = ||y||^2``."""
+    K = r.shape[-1]
+    Gk = Gm.expand(3, K, K)[:, sel][:, :, sel]
+    res = n2 - 2 * (a * r[:, sel]).sum(-1) + torch.einsum("ck,ckl,cl->c", a, Gk, a)
+    return torch.sqrt(res.clamp(min=0.0) / n2.clamp(min=1e-300))
