@@ -18,7 +18,7 @@ from typing import Optional, Sequence
 import torch
 
 from ..kernel import _const
-from .westin import broadcast_pair, complex_powers, unit_dirs
+from ._products import broadcast_pair, complex_powers, unit_dirs
 
 __all__ = ["pair_frame", "azimuth_table", "gather_rows"]
 

@@ -38,7 +38,7 @@ import torch
 from ..kernel import _const, _hsh_flat, _polar_consts, _polar_table, _safe_s
 from ._base import Basis, register_basis
 from ._isotropic import azimuth_table, gather_rows, pair_frame
-from .westin import MAX_PRODUCT_ORDER, broadcast_pair, pair_table
+from ._products import MAX_PRODUCT_ORDER, broadcast_pair, pair_table
 
 __all__ = ["GautronHSH", "GautronHSHIsotropic"]
 

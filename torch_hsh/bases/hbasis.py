@@ -48,7 +48,7 @@ import torch
 
 from .._checks import check_order
 from ._base import Basis, register_basis
-from .westin import broadcast_pair, product_basis, unit_dirs
+from ._products import broadcast_pair, pair_table, product_basis, unit_dirs
 
 __all__ = ["h_basis", "HBasis", "HBasisIsotropic"]
 
@@ -142,8 +142,6 @@ class HBasis(Basis):
         return k * (k + 1) // 2
 
     def function_orders(self, order):
-        from .westin import pair_table
-
         order = self.check_order(order)
         return torch.tensor(pair_table(_LABELS[: _COUNTS[order]], order, True)[3], dtype=torch.long)
 
