@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from ._checks import MAX_ANISOTROPIC_ORDER, check_order, check_tensor
+from .bases.helmholtz import albedo_terms
 from .kernel import (
     anisotropic_indices,
     helmholtz_anisotropic,
@@ -100,50 +101,19 @@ class HSH(nn.Module):
 # --------------------------------------------------------------------------
 # Closed-form directional albedo tables
 # --------------------------------------------------------------------------
-# Hemispherical integral of Theta_n^0(theta) cos(theta) dw:
-#   2 pi * sqrt((2n+1)/(2 pi)) * int_0^1 P~_n(x) x dx, the integral being
-#   1/2 (n = 0), 1/6 (n = 1), 0 (n >= 2).
-_COS_MOMENT = {0: math.sqrt(2.0 * math.pi) / 2.0, 1: math.sqrt(6.0 * math.pi) / 6.0}
-
-
 @lru_cache(maxsize=None)
 def _albedo_terms(order: int, isotropic: bool) -> Tuple[Tuple[int, ...], Tuple[int, ...], Tuple[float, ...]]:
     r"""Sparse map from (HSH column of wo, coefficient column) to a weight.
 
-    ``albedo(wo) = sum_e w_e * H_{h_e}(wo) * a_{c_e}``. See
-    :meth:`HelmholtzBRDF.albedo` for the derivation.
+    ``albedo(wo) = sum_e w_e * H_{h_e}(wo) * a_{c_e}``, flattened from
+    :func:`torch_hsh.bases.helmholtz.albedo_terms` (see :meth:`HelmholtzBRDF.albedo`).
     """
     h_idx, c_idx, w = [], [], []
-    if isotropic:
-        rows = isotropic_indices(order).tolist()
-        for col, (p, r, q) in enumerate(rows):
-            if q != 0:
-                continue
-            npr = 1.0 / math.sqrt(2.0 + 2.0 * (p == r))
-            # N_pr [I_p Theta_r(wo) + I_r Theta_p(wo)];  Theta_n^0 = H_n^0 (flat index n*n + n)
-            if p in _COS_MOMENT:
-                h_idx.append(r * r + r)
-                c_idx.append(col)
-                w.append(npr * _COS_MOMENT[p])
-            if r in _COS_MOMENT:
-                h_idx.append(p * p + p)
-                c_idx.append(col)
-                w.append(npr * _COS_MOMENT[r])
-    else:
-        rows = anisotropic_indices(order).tolist()
-        for col, (p, q, r, s) in enumerate(rows):
-            j = p * p + p + q
-            k = r * r + r + s
-            njk = 1.0 / math.sqrt(2.0 + 2.0 * (j == k))
-            # N [J_j H_k(wo) + J_k H_j(wo)], J_n^m = I_n if m == 0 and n <= 1 else 0
-            if q == 0 and p in _COS_MOMENT:
-                h_idx.append(k)
-                c_idx.append(col)
-                w.append(njk * _COS_MOMENT[p])
-            if s == 0 and r in _COS_MOMENT:
-                h_idx.append(j)
-                c_idx.append(col)
-                w.append(njk * _COS_MOMENT[r])
+    for col, norm, terms in albedo_terms(order, isotropic):
+        for moment, n, m in terms:
+            h_idx.append(n * n + n + m)
+            c_idx.append(col)
+            w.append(norm * moment)
     return tuple(h_idx), tuple(c_idx), tuple(w)
 
 

@@ -1,7 +1,6 @@
 r"""Directional albedo of an expansion: closed form for the Helmholtz bases, quadrature otherwise."""
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 import torch
@@ -9,41 +8,30 @@ import torch
 from .. import kernel as _hb
 from .._checks import broadcast_shapes, check_dirs, check_same, check_tensor
 from ..bases import Basis
-from ..bases.helmholtz import HelmholtzAnisotropic, HelmholtzIsotropic
+from ..bases.helmholtz import HelmholtzAnisotropic, HelmholtzIsotropic, albedo_terms
 from ..quadrature import direction_quadrature
-from .arguments import _DEFAULT, _TWO_PI, BasisLike, _basis, _order_of
+from .arguments import _DEFAULT, BasisLike, _basis, _order_of
 
 __all__ = ["directional_albedo"]
 
 
-_I0 = math.sqrt(_TWO_PI) * 0.5  # int over the hemisphere of Theta_0(z) z
-_I1 = math.sqrt(_TWO_PI * 3.0) / 6.0  # int of Theta_1(z) z = sqrt(pi/6)
-
-
 def _albedo_matrix(b: Basis, P: int, dtype, device):
-    """(K, M) matrix S and a function wo -> (..., M) table T with albedo = (a @ S) . T(wo)."""
+    """(K, M) matrix S and a function wo -> (..., M) table T with albedo = (a @ S) . T(wo).
+
+    ``S`` holds :func:`torch_hsh.bases.helmholtz.albedo_terms`; ``T`` is the zonal HSH ``Theta_n``, ``n <= P``
+    (isotropic basis) or every HSH up to ``P`` (anisotropic basis).
+    """
     if isinstance(b, HelmholtzIsotropic):
-        idx = _hb.isotropic_indices(P).tolist()
-        S = torch.zeros(len(idx), P + 1, dtype=torch.float64)
-        I = [_I0, _I1] + [0.0] * max(0, P - 1)
-        for k, (p, r, q) in enumerate(idx):
-            if q != 0:
-                continue
-            n = 1.0 / math.sqrt(2.0 + 2.0 * (p == r))
-            S[k, r] += n * I[p]
-            S[k, p] += n * I[r]
-        return S.to(dtype=dtype, device=device), lambda wo: _theta_table_dirs(wo, P)
-    if isinstance(b, HelmholtzAnisotropic):
-        idx = _hb.anisotropic_indices(P).tolist()
-        S = torch.zeros(len(idx), (P + 1) ** 2, dtype=torch.float64)
-        Iflat = {0: _I0, 2: _I1}  # flat indices of H_0^0, H_1^0
-        for k, (p, q, r, s) in enumerate(idx):
-            j, kk = p * p + p + q, r * r + r + s
-            n = 1.0 / math.sqrt(2.0 + 2.0 * (j == kk))
-            S[k, kk] += n * Iflat.get(j, 0.0)
-            S[k, j] += n * Iflat.get(kk, 0.0)
-        return S.to(dtype=dtype, device=device), lambda wo: _hb.hsh(wo, P)
-    return None, None
+        K, M, table = _hb.num_isotropic(P), P + 1, (lambda wo: _theta_table_dirs(wo, P))
+    elif isinstance(b, HelmholtzAnisotropic):
+        K, M, table = _hb.num_anisotropic(P), (P + 1) ** 2, (lambda wo: _hb.hsh(wo, P))
+    else:
+        return None, None
+    S = torch.zeros(K, M, dtype=torch.float64)
+    for k, norm, terms in albedo_terms(P, b.isotropic):
+        for moment, n, m in terms:
+            S[k, n if b.isotropic else n * n + n + m] += norm * moment
+    return S.to(dtype=dtype, device=device), table
 
 
 def _theta_table_dirs(wo: torch.Tensor, P: int) -> torch.Tensor:

@@ -13,7 +13,8 @@ from typing import Dict, Optional, Sequence
 
 import torch
 
-from ..kernel import _polar_table, isotropic_indices
+from ..bases.helmholtz import albedo_terms
+from ..kernel import _polar_table, num_isotropic
 from ..render import order_from_num_coefficients, render_coefficients
 from .lambertian import robust_lambertian
 from .observations import prepare_inputs
@@ -208,26 +209,24 @@ class HoldoutResult:
 def _albedo_vector(order: int, cos_o: torch.Tensor) -> torch.Tensor:
     """``D_k(cos_o) = integral of B_k(wi, wo) cos(theta_i) dwi`` for every isotropic function, ``(P, K)``.
 
-    Only q = 0 terms with p <= 1 or r <= 1 are non-zero: the integral over
-    ``[0, 1]`` of ``P~_n(x) x dx`` is 1/2 (n = 0), 1/6 (n = 1), 0 otherwise.
+    The terms are :func:`torch_hsh.bases.helmholtz.albedo_terms`; they are evaluated here on the solver's
+    polar table (not the HSH of ``fitting.directional_albedo``) and summed per column, which keeps this
+    function's rounding, and with it ``HSHResult.albedo``, as it was.
     """
-    idx = isotropic_indices(order).tolist()
     R = _polar_table(cos_o.clamp(0.0, 1.0), order)  # normalised Theta_n^m(cos_o) table
     # columns of the polar table for m = 0 are the first block: n = 0..P at columns 0..P
-    integ = {0: 0.5, 1: 1.0 / 6.0}
+    terms = {k: (norm, zonal) for k, norm, zonal in albedo_terms(order, True)}
     cols = []
     zero = torch.zeros_like(cos_o)
-    for p, r, q in idx:
-        if q != 0:
+    for k in range(num_isotropic(order)):
+        if k not in terms:
             cols.append(zero)
             continue
-        npr = 0.5 if p == r else 1.0 / math.sqrt(2.0)
+        norm, zonal = terms[k]
         val = zero
-        for a, b in ((p, r), (r, p)):
-            if a in integ:
-                ca = 2.0 * math.pi * math.sqrt((2 * a + 1) / (2.0 * math.pi)) * integ[a]
-                val = val + ca * R[:, _m0_col(order, b)]
-        cols.append(npr * val)
+        for moment, n, _ in zonal:
+            val = val + moment * R[:, _m0_col(order, n)]
+        cols.append(norm * val)
     return torch.stack(cols, dim=-1)
 
 
