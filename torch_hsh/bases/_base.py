@@ -77,6 +77,13 @@ class Basis(ABC):
         return f"{type(self).__name__}(name={self.name!r})"
 
 
+class DegreeBasis(Basis):
+    """A basis whose functions up to order ``P`` have azimuthal degree ``<= P`` (every basis of the package)."""
+
+    def azimuthal_degree(self, order: int) -> Optional[int]:
+        return self.check_order(order)
+
+
 def register_basis(basis: Basis) -> Basis:
     """Add a basis instance to the registry under ``basis.name``."""
     _REGISTRY[basis.name] = basis

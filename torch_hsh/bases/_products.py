@@ -14,8 +14,10 @@ import torch
 
 from .._checks import broadcast_shapes, check_dirs, check_same
 from ..kernel import _const
+from ._base import DegreeBasis
 
-__all__ = ["MAX_PRODUCT_ORDER", "unit_dirs", "broadcast_pair", "pair_table", "product_basis", "complex_powers"]
+__all__ = ["MAX_PRODUCT_ORDER", "unit_dirs", "broadcast_pair", "pair_table", "product_basis", "complex_powers",
+           "PairProductBasis"]
 
 #: Largest order of the anisotropic product bases (number of columns grows as P**4).
 MAX_PRODUCT_ORDER = 16
@@ -102,3 +104,32 @@ def complex_powers(cr: torch.Tensor, ci: torch.Tensor, order: int):
     RE = torch.stack(re, dim=-1)
     IM = torch.stack(im, dim=-1) if im else cr.new_zeros(cr.shape + (0,))
     return RE, IM
+
+
+class PairProductBasis(DegreeBasis):
+    """A basis of products of per-direction functions, all pairs (``symmetric``: unordered, Eq. 9) up to the order.
+
+    Subclasses give :meth:`labels` (order label of each per-direction function) and :meth:`per_direction`
+    (their ``(N, L)`` table); columns are sorted by label as :func:`pair_table`.
+    """
+
+    isotropic = False
+    symmetric = True
+    _cache_key = ""
+
+    def labels(self, order: int) -> Tuple[int, ...]:
+        raise NotImplementedError
+
+    def per_direction(self, d: torch.Tensor, order: int) -> torch.Tensor:
+        raise NotImplementedError
+
+    def evaluate(self, wi, wo, order):
+        lead, wi, wo = broadcast_pair(wi, wo)
+        order = self.check_order(order)
+        Fi, Fo = self.per_direction(wi, order), self.per_direction(wo, order)
+        out = product_basis(Fi, Fo, self.labels(order), order, self.symmetric, self._cache_key)
+        return out.reshape(*lead, out.shape[-1])
+
+    def function_orders(self, order):
+        order = self.check_order(order)
+        return torch.tensor(pair_table(tuple(self.labels(order)), order, self.symmetric)[3], dtype=torch.long)

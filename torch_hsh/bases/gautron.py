@@ -35,10 +35,10 @@ from functools import lru_cache
 
 import torch
 
-from ..kernel import _const, _hsh_flat, _polar_consts, _polar_table, _safe_s
-from ._base import Basis, register_basis
-from ._isotropic import azimuth_table, gather_rows, pair_frame
-from ._products import MAX_PRODUCT_ORDER, broadcast_pair, pair_table
+from ..kernel import _hsh_flat, _polar_consts, _polar_table, _safe_s
+from ._base import register_basis
+from ._isotropic import RowTableBasis, azimuth_table, product_rows
+from ._products import MAX_PRODUCT_ORDER, PairProductBasis
 
 __all__ = ["GautronHSH", "GautronHSHIsotropic"]
 
@@ -48,7 +48,7 @@ def _hsh_labels(order: int):
     return tuple(int(math.isqrt(k)) for k in range((order + 1) ** 2))
 
 
-class GautronHSH(Basis):
+class GautronHSH(PairProductBasis):
     """Plain products of HSH, ``gautron_hsh`` (not reciprocal).
 
     ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., (P+1)**4)``; zero where a
@@ -63,46 +63,26 @@ class GautronHSH(Basis):
     """
 
     name = "gautron_hsh"
-    isotropic = False
     reciprocal = False
+    symmetric = False
     domain = "hemisphere"
     max_order = MAX_PRODUCT_ORDER
+    _cache_key = "gau"
 
-    def evaluate(self, wi, wo, order):
-        lead, wi, wo = broadcast_pair(wi, wo)
-        order = self.check_order(order)
-        Hi = _hsh_flat(wi, order)
-        Ho = _hsh_flat(wo, order)
-        j, k, _, _ = pair_table(_hsh_labels(order), order, False)
-        dev = Hi.device
-        out = Hi.index_select(-1, _const(("gau_j", order), j, dev, None)) * Ho.index_select(
-            -1, _const(("gau_k", order), k, dev, None)
-        )
-        return out.reshape(*lead, out.shape[-1])
+    def labels(self, order):
+        return _hsh_labels(order)
 
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
+    def per_direction(self, d, order):
+        return _hsh_flat(d, order)
 
     def num_functions(self, order):
         return (self.check_order(order) + 1) ** 4
-
-    def function_orders(self, order):
-        order = self.check_order(order)
-        return torch.tensor(pair_table(_hsh_labels(order), order, False)[3], dtype=torch.long)
 
 
 @lru_cache(maxsize=None)
 def _gautron_iso_rows(order: int):
     """Rows ``(label, p, r, q, kind)``, kind 0 = cosine, 1 = sine; sorted (nested by label)."""
-    rows = []
-    for p in range(order + 1):
-        for r in range(order + 1):
-            for q in range(min(p, r) + 1):
-                rows.append((max(p, r), p, r, q, 0))
-                if q >= 1:
-                    rows.append((max(p, r), p, r, q, 1))
-    rows.sort(key=lambda t: (t[0], t[1], t[2], t[4], t[3]))
-    return tuple(rows)
+    return product_rows(order, lambda p, r, q: True)
 
 
 def gautron_isotropic_indices(order: int) -> torch.Tensor:
@@ -118,7 +98,7 @@ def gautron_isotropic_indices(order: int) -> torch.Tensor:
     return torch.tensor([r[1:] for r in _gautron_iso_rows(order)], dtype=torch.long).reshape(-1, 4)
 
 
-class GautronHSHIsotropic(Basis):
+class GautronHSHIsotropic(RowTableBasis):
     """Isotropic subspace of the HSH product basis, ``gautron_hsh_isotropic`` (not reciprocal).
 
     ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., K)`` with rows as
@@ -131,32 +111,25 @@ class GautronHSHIsotropic(Basis):
     """
 
     name = "gautron_hsh_isotropic"
-    isotropic = True
     reciprocal = False
+    symmetric = False
     domain = "hemisphere"
     max_order = 40
+    _cache_key = "gi"
 
-    def evaluate(self, wi, wo, order):
-        lead, zi, zo, cr, ci, valid = pair_frame(wi, wo)
-        order = self.check_order(order)
+    def rows(self, order):
+        return _gautron_iso_rows(order)
+
+    def tables(self, zi, zo, cr, ci, valid, order):
         zi_c, zo_c = zi.clamp(min=0.0), zo.clamp(min=0.0)
         Ti, To = _polar_table(zi_c, order), _polar_table(zo_c, order)
         # (s_i s_o)^q c^q: magnitude (sin_i sin_o)^q, phase q dphi (the polar tables carry 1/(s^q))
         AZ = azimuth_table(cr, ci, valid, order, True, _safe_s(zi_c) * _safe_s(zo_c))
-        _, _, _, col = _polar_consts(order)
-        rows = _gautron_iso_rows(order)
-        return gather_rows(Ti, To, AZ, [col[(p, q)] for _, p, r, q, kd in rows], [col[(r, q)] for _, p, r, q, kd in rows],
-                           [q if kd == 0 else order + q for _, p, r, q, kd in rows],
-                           [1.0 if q == 0 else math.sqrt(2.0) for _, p, r, q, kd in rows], ("gi", order), False, lead)
+        return Ti, To, AZ, _polar_consts(order)[3]
 
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
-
-    def num_functions(self, order):
-        return len(_gautron_iso_rows(self.check_order(order)))
-
-    def function_orders(self, order):
-        return torch.tensor([r[0] for r in _gautron_iso_rows(self.check_order(order))], dtype=torch.long)
+    def gather(self, row, col, order):
+        _, p, r, q, kd = row
+        return col[(p, q)], col[(r, q)], q if kd == 0 else order + q, 1.0 if q == 0 else math.sqrt(2.0)
 
 
 register_basis(GautronHSH())

@@ -47,8 +47,8 @@ import math
 import torch
 
 from .._checks import check_order
-from ._base import Basis, register_basis
-from ._products import broadcast_pair, pair_table, product_basis, unit_dirs
+from ._base import register_basis
+from ._products import PairProductBasis, broadcast_pair, unit_dirs
 
 __all__ = ["h_basis", "HBasis", "HBasisIsotropic"]
 
@@ -102,7 +102,7 @@ def h_basis(dirs: torch.Tensor, order: int = 2) -> torch.Tensor:
     return _h_flat(dirs.reshape(-1, 3), order).reshape(*lead, _COUNTS[order])
 
 
-class HBasis(Basis):
+class HBasis(PairProductBasis):
     """Symmetrised product of the H-basis, ``hbasis`` (orders 0..2 only).
 
     ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., K)``, K = 1, 10, 21; columns
@@ -117,10 +117,10 @@ class HBasis(Basis):
     """
 
     name = "hbasis"
-    isotropic = False
     reciprocal = True
     domain = "hemisphere"
     max_order = 2
+    _cache_key = "hb"
 
     def check_order(self, order) -> int:
         try:
@@ -128,22 +128,15 @@ class HBasis(Basis):
         except ValueError as e:
             raise ValueError(f"basis '{self.name}': {e}") from None
 
-    def evaluate(self, wi, wo, order):
-        lead, wi, wo = broadcast_pair(wi, wo)
-        order = self.check_order(order)
-        out = product_basis(_h_flat(wi, order), _h_flat(wo, order), _LABELS[: _COUNTS[order]], order, True, "hb")
-        return out.reshape(*lead, out.shape[-1])
+    def labels(self, order):
+        return _LABELS[: _COUNTS[order]]
 
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
+    def per_direction(self, d, order):
+        return _h_flat(d, order)
 
     def num_functions(self, order):
         k = _COUNTS[self.check_order(order)]
         return k * (k + 1) // 2
-
-    def function_orders(self, order):
-        order = self.check_order(order)
-        return torch.tensor(pair_table(_LABELS[: _COUNTS[order]], order, True)[3], dtype=torch.long)
 
 
 # rows (label, q, kind) of the isotropic reduction; kind: "00" H1H1, "31" H3H1, "33" H3H3, "q" for q>0
@@ -184,9 +177,6 @@ class HBasisIsotropic(HBasis):
             cols.append(math.sqrt(2.0) * (15.0 / (16.0 * math.pi)) * (a * a - b * b))
         out = torch.stack(cols, dim=-1) * mask.unsqueeze(-1)
         return out.reshape(*lead, out.shape[-1])
-
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
 
     def num_functions(self, order):
         return _ISO_COUNTS[self.check_order(order)]

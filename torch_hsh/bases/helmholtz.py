@@ -10,27 +10,32 @@ import torch
 
 from .. import kernel as _b
 from .._checks import MAX_ANISOTROPIC_ORDER
-from ._base import Basis, register_basis
+from ._base import DegreeBasis, register_basis
 
 __all__ = ["HelmholtzIsotropic", "HelmholtzAnisotropic", "COS_MOMENTS", "albedo_terms"]
 
 
-class HelmholtzIsotropic(Basis):
+class _Helmholtz(DegreeBasis):
+    """What the two Helmholtz bases share: reciprocal, on the hemispheres, registered under several names."""
+
+    reciprocal = True
+    domain = "hemisphere"
+
+    def __init__(self, name: str):
+        self.name = name
+
+
+class HelmholtzIsotropic(_Helmholtz):
     """Isotropic Helmholtz HSH basis (erratum-1 normalisation), see :func:`torch_hsh.helmholtz_isotropic`."""
 
     isotropic = True
-    reciprocal = True
-    domain = "hemisphere"
     max_order = 40
 
     def __init__(self, name: str = "helmholtz_isotropic"):
-        self.name = name
+        super().__init__(name)
 
     def evaluate(self, wi, wo, order):
         return _b.helmholtz_isotropic(wi, wo, self.check_order(order))
-
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
 
     def num_functions(self, order):
         return _b.num_isotropic(self.check_order(order))
@@ -39,7 +44,7 @@ class HelmholtzIsotropic(Basis):
         return _b.isotropic_indices(self.check_order(order))[:, 0].clone()
 
 
-class HelmholtzAnisotropic(Basis):
+class HelmholtzAnisotropic(_Helmholtz):
     """General Helmholtz HSH basis, see :func:`torch_hsh.helmholtz_anisotropic`.
 
     Note: columns are ordered j-major over HSH pairs, which is *not* nested by
@@ -47,18 +52,13 @@ class HelmholtzAnisotropic(Basis):
     """
 
     isotropic = False
-    reciprocal = True
-    domain = "hemisphere"
     max_order = MAX_ANISOTROPIC_ORDER
 
     def __init__(self, name: str = "helmholtz_anisotropic"):
-        self.name = name
+        super().__init__(name)
 
     def evaluate(self, wi, wo, order):
         return _b.helmholtz_anisotropic(wi, wo, self.check_order(order))
-
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
 
     def num_functions(self, order):
         return _b.num_anisotropic(self.check_order(order))

@@ -47,10 +47,11 @@ import torch
 
 from .._checks import check_dirs, check_order
 from ..kernel import _const
-from ._base import Basis, register_basis
-from ._isotropic import azimuth_table, gather_rows, pair_frame
+from ._base import register_basis
+from ._isotropic import RowTableBasis, azimuth_table
 from ._products import (  # noqa: F401  (MAX_PRODUCT_ORDER, broadcast_pair, product_basis: importable from here)
     MAX_PRODUCT_ORDER,
+    PairProductBasis,
     broadcast_pair,
     complex_powers,
     pair_table,
@@ -158,7 +159,7 @@ def real_sh(dirs: torch.Tensor, order: int) -> torch.Tensor:
 # --------------------------------------------------------------------------
 # bases
 # --------------------------------------------------------------------------
-class WestinSH(Basis):
+class WestinSH(PairProductBasis):
     """Symmetrised product of full-sphere real SH (Westin et al. 1992), ``westin_sh``.
 
     ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., K(K+1)/2)``, ``K = (P+1)**2``,
@@ -172,29 +173,20 @@ class WestinSH(Basis):
     """
 
     name = "westin_sh"
-    isotropic = False
     reciprocal = True
     domain = "sphere"
     max_order = MAX_PRODUCT_ORDER
+    _cache_key = "westin"
 
-    def evaluate(self, wi, wo, order):
-        lead, wi, wo = broadcast_pair(wi, wo)
-        order = self.check_order(order)
-        Fi = _sh_flat(wi, order)
-        Fo = _sh_flat(wo, order)
-        out = product_basis(Fi, Fo, _sh_gather(order)[3], order, True, "westin")
-        return out.reshape(*lead, out.shape[-1])
+    def labels(self, order):
+        return _sh_gather(order)[3]
 
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
+    def per_direction(self, d, order):
+        return _sh_flat(d, order)
 
     def num_functions(self, order):
         k = (self.check_order(order) + 1) ** 2
         return k * (k + 1) // 2
-
-    def function_orders(self, order):
-        order = self.check_order(order)
-        return torch.tensor(pair_table(_sh_gather(order)[3], order, True)[3], dtype=torch.long)
 
 
 @lru_cache(maxsize=None)
@@ -203,7 +195,7 @@ def iso_table(order: int):
     return tuple((p, r, q) for p in range(order + 1) for r in range(p + 1) for q in range(r + 1))
 
 
-class WestinSHIsotropic(Basis):
+class WestinSHIsotropic(RowTableBasis):
     """Isotropic reduction of ``westin_sh`` (full-sphere Legendre polar parts), ``westin_sh_isotropic``.
 
     ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., (P+1)(P+2)(P+3)/6)``, rows
@@ -217,31 +209,22 @@ class WestinSHIsotropic(Basis):
     """
 
     name = "westin_sh_isotropic"
-    isotropic = True
     reciprocal = True
-    domain = "sphere"
+    domain = "sphere"  # full-sphere basis: no horizon mask
     max_order = 40
+    _cache_key = "westin_iso"
 
-    def evaluate(self, wi, wo, order):
-        lead, zi, zo, cr, ci, valid = pair_frame(wi, wo, hemisphere=False)  # full-sphere basis: no horizon mask
-        order = self.check_order(order)
+    def rows(self, order):
+        return iso_table(order)
+
+    def tables(self, zi, zo, cr, ci, valid, order):
         col, _ = _sh_consts(order)
-        Ti, To = _sh_polar(zi, order), _sh_polar(zo, order)
         RE = azimuth_table(cr, ci, valid, order, False)  # (sin_i sin_o)^q cos(q dphi)
-        rows = iso_table(order)
-        c = [(0.5 if p == r else 1.0 / math.sqrt(2.0)) * (1.0 if q == 0 else math.sqrt(2.0)) for p, r, q in rows]
-        return gather_rows(Ti, To, RE, [col[(p, q)] for p, r, q in rows], [col[(r, q)] for p, r, q in rows],
-                           [q for p, r, q in rows], c, ("westin_iso", order), True, lead)
+        return _sh_polar(zi, order), _sh_polar(zo, order), RE, col
 
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
-
-    def num_functions(self, order):
-        P = self.check_order(order)
-        return (P + 1) * (P + 2) * (P + 3) // 6
-
-    def function_orders(self, order):
-        return torch.tensor([p for p, r, q in iso_table(self.check_order(order))], dtype=torch.long)
+    def gather(self, row, col, order):
+        p, r, q = row
+        return col[(p, q)], col[(r, q)], q, (0.5 if p == r else 1.0 / math.sqrt(2.0)) * (1.0 if q == 0 else math.sqrt(2.0))
 
 
 register_basis(WestinSH())

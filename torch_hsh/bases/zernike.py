@@ -41,8 +41,8 @@ from functools import lru_cache
 import torch
 
 from .._checks import check_order
-from ._base import Basis, register_basis
-from ._isotropic import azimuth_table, gather_rows, pair_frame
+from ._base import register_basis
+from ._isotropic import RowTableBasis, azimuth_table, product_rows
 
 __all__ = ["KoenderinkZernike", "KoenderinkZernikeProduct", "zernike_indices", "zernike_product_indices",
            "zernike_radial", "zernike_mirror_coefficients"]
@@ -162,17 +162,24 @@ def zernike_mirror_coefficients(order: int, dtype=torch.float64) -> torch.Tensor
     return torch.tensor(vals, dtype=dtype)
 
 
-def _tables(zi, zo, cr, ci, valid, order: int, sines: bool):
-    """Radial tables R_n^l/rho^l at u = 1 - z and the azimuthal table rho_i^l rho_o^l {cos, sin}(l dphi)."""
-    zi_c, zo_c = zi.clamp(0.0, 1.0), zo.clamp(0.0, 1.0)
-    Ti, col = _radial_table(1.0 - zi_c, order)
-    To, _ = _radial_table(1.0 - zo_c, order)
-    # rho_i^l rho_o^l cos(l dphi) = Re(c'^l), c' = c / sqrt((1+z_i)(1+z_o))
-    A = azimuth_table(cr, ci, valid, order, sines, torch.rsqrt((1.0 + zi_c) * (1.0 + zo_c)))
-    return Ti, To, A, col
+class _ZernikeTables(RowTableBasis):
+    """The radial and azimuthal tables of both Koenderink--van Doorn bases."""
+
+    domain = "hemisphere"
+    max_order = MAX_ZERNIKE_ORDER
+    _sines = False  # the symmetrised basis has cosine terms only
+
+    def tables(self, zi, zo, cr, ci, valid, order):
+        """Radial tables R_n^l/rho^l at u = 1 - z and the azimuthal table rho_i^l rho_o^l {cos, sin}(l dphi)."""
+        zi_c, zo_c = zi.clamp(0.0, 1.0), zo.clamp(0.0, 1.0)
+        Ti, col = _radial_table(1.0 - zi_c, order)
+        To, _ = _radial_table(1.0 - zo_c, order)
+        # rho_i^l rho_o^l cos(l dphi) = Re(c'^l), c' = c / sqrt((1+z_i)(1+z_o))
+        A = azimuth_table(cr, ci, valid, order, self._sines, torch.rsqrt((1.0 + zi_c) * (1.0 + zo_c)))
+        return Ti, To, A, col
 
 
-class KoenderinkZernike(Basis):
+class KoenderinkZernike(_ZernikeTables):
     """Isotropic reciprocal Zernike basis, ``koenderink_zernike`` (order label = n).
 
     ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., K)``, rows as
@@ -187,43 +194,21 @@ class KoenderinkZernike(Basis):
     """
 
     name = "koenderink_zernike"
-    isotropic = True
     reciprocal = True
-    domain = "hemisphere"
-    max_order = MAX_ZERNIKE_ORDER
+    _cache_key = "zk"
 
-    def evaluate(self, wi, wo, order):
-        lead, zi, zo, cr, ci, valid = pair_frame(wi, wo)
-        order = self.check_order(order)
-        Ti, To, A, col = _tables(zi, zo, cr, ci, valid, order, False)
-        rows = _rows(order)
-        return gather_rows(Ti, To, A, [col[(n, l)] for n, m, l in rows], [col[(m, l)] for n, m, l in rows],
-                           [l for n, m, l in rows], [_norm(n, m, l) for n, m, l in rows], ("zk", order), True, lead)
+    def rows(self, order):
+        return _rows(order)
 
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
-
-    def num_functions(self, order):
-        return len(_rows(self.check_order(order)))
-
-    def function_orders(self, order):
-        return torch.tensor([n for n, m, l in _rows(self.check_order(order))], dtype=torch.long)
+    def gather(self, row, col, order):
+        n, m, l = row
+        return col[(n, l)], col[(m, l)], l, _norm(n, m, l)
 
 
 @lru_cache(maxsize=None)
 def _product_rows(order: int):
     """Rows ``(label, n, m, l, kind)`` of the unsymmetrised basis, kind 0 = cos, 1 = sin; nested by label."""
-    rows = []
-    for n in range(order + 1):
-        for m in range(order + 1):
-            for l in range(min(n, m) + 1):
-                if (n - l) % 2 or (m - l) % 2:
-                    continue
-                rows.append((max(n, m), n, m, l, 0))
-                if l >= 1:
-                    rows.append((max(n, m), n, m, l, 1))
-    rows.sort(key=lambda t: (t[0], t[1], t[2], t[4], t[3]))
-    return tuple(rows)
+    return product_rows(order, lambda n, m, l: (n - l) % 2 == 0 and (m - l) % 2 == 0)
 
 
 def zernike_product_indices(order: int) -> torch.Tensor:
@@ -237,7 +222,7 @@ def zernike_product_indices(order: int) -> torch.Tensor:
     return torch.tensor([r[1:] for r in _product_rows(order)], dtype=torch.long).reshape(-1, 4)
 
 
-class KoenderinkZernikeProduct(Basis):
+class KoenderinkZernikeProduct(_ZernikeTables):
     r"""Unsymmetrised isotropic Zernike product basis, ``koenderink_zernike_product`` (**not** reciprocal).
 
     .. math::
@@ -258,29 +243,18 @@ class KoenderinkZernikeProduct(Basis):
     """
 
     name = "koenderink_zernike_product"
-    isotropic = True
     reciprocal = False
-    domain = "hemisphere"
-    max_order = MAX_ZERNIKE_ORDER
+    symmetric = False
+    _cache_key = "zkp"
+    _sines = True
 
-    def evaluate(self, wi, wo, order):
-        lead, zi, zo, cr, ci, valid = pair_frame(wi, wo)
-        order = self.check_order(order)
-        Ti, To, A, col = _tables(zi, zo, cr, ci, valid, order, True)
-        rows = _product_rows(order)
-        coef = [math.sqrt((n + 1) * (m + 1)) / (2 * math.pi) * (1.0 if l == 0 else math.sqrt(2.0))
-                for _, n, m, l, kd in rows]
-        return gather_rows(Ti, To, A, [col[(n, l)] for _, n, m, l, kd in rows], [col[(m, l)] for _, n, m, l, kd in rows],
-                           [l if kd == 0 else order + l for _, n, m, l, kd in rows], coef, ("zkp", order), False, lead)
+    def rows(self, order):
+        return _product_rows(order)
 
-    def azimuthal_degree(self, order):
-        return self.check_order(order)
-
-    def num_functions(self, order):
-        return len(_product_rows(self.check_order(order)))
-
-    def function_orders(self, order):
-        return torch.tensor([r[0] for r in _product_rows(self.check_order(order))], dtype=torch.long)
+    def gather(self, row, col, order):
+        _, n, m, l, kd = row
+        coef = math.sqrt((n + 1) * (m + 1)) / (2 * math.pi) * (1.0 if l == 0 else math.sqrt(2.0))
+        return col[(n, l)], col[(m, l)], l if kd == 0 else order + l, coef
 
 
 register_basis(KoenderinkZernike())
