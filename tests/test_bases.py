@@ -207,13 +207,17 @@ def test_real_sh_azimuth_convention_matches_hsh():
 
 
 # --------------------------------------------------------------------------- reciprocity and isotropy
+def _basis_and_pairs(name, n, seed):
+    """The basis, ``n`` random direction pairs on its domain and the order tested (at most 4)."""
+    b = get_basis(name)
+    gen = torch.Generator().manual_seed(seed)
+    upper = b.domain == "hemisphere"
+    return b, random_dirs(n, gen, upper), random_dirs(n, gen, upper), min(b.max_order, 4)
+
+
 @pytest.mark.parametrize("name", [n for n in COMPARISON if n not in NON_RECIPROCAL])
 def test_reciprocity_holds(name):
-    b = get_basis(name)
-    gen = torch.Generator().manual_seed(5)
-    upper = b.domain == "hemisphere"
-    wi, wo = random_dirs(50, gen, upper), random_dirs(50, gen, upper)
-    P = min(b.max_order, 4)
+    b, wi, wo, P = _basis_and_pairs(name, 50, 5)
     assert b.reciprocal
     torch.testing.assert_close(b.evaluate(wi, wo, P), b.evaluate(wo, wi, P), rtol=1e-12, atol=1e-12)
 
@@ -246,11 +250,7 @@ def test_gautron_swap_is_a_column_permutation():
 
 @pytest.mark.parametrize("name", [n for n in COMPARISON if get_basis(n).isotropic] + ["helmholtz_isotropic"])
 def test_isotropy(name):
-    b = get_basis(name)
-    gen = torch.Generator().manual_seed(8)
-    upper = b.domain == "hemisphere"
-    wi, wo = random_dirs(40, gen, upper), random_dirs(40, gen, upper)
-    P = min(b.max_order, 4)
+    b, wi, wo, P = _basis_and_pairs(name, 40, 8)
     ref = b.evaluate(wi, wo, P)
     for a in (0.4, 2.5):
         torch.testing.assert_close(b.evaluate(rot_z(wi, a), rot_z(wo, a), P), ref, rtol=1e-11, atol=1e-11)

@@ -10,6 +10,7 @@ Example:
     >>> m(torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.3, 0.0, 1.0])).shape
     torch.Size([3])
 """
+from . import models
 from .models import (
     BlinnPhong,
     BRDFModel,
@@ -24,16 +25,4 @@ from .models import (
     register_model,
 )
 
-__all__ = [
-    "BRDFModel",
-    "Lambertian",
-    "TorranceSparrow",
-    "CookTorranceGGX",
-    "BlinnPhong",
-    "OrenNayar",
-    "WardAnisotropic",
-    "available_models",
-    "fresnel_dielectric",
-    "get_model",
-    "register_model",
-]
+__all__ = list(models.__all__)  # the names listed once, in torch_hsh.brdf.models

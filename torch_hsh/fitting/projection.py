@@ -1,7 +1,7 @@
 r"""Projection of a BRDF onto a basis (paper Eq. 14), its energy and Acc(P): fixed or convergence-controlled rules."""
 from __future__ import annotations
 
-from typing import Callable, Optional, Tuple
+from typing import Callable, Dict, Optional, Tuple
 
 import torch
 
@@ -51,6 +51,21 @@ def _check_control(tol, max_evaluations, grazing_cutoff, method):
     return c
 
 
+def _prepare(brdf, basis, order, dtype, tol, max_evaluations, grazing_cutoff, method) -> Tuple[Basis, int, float]:
+    """The argument checks of :func:`project`, :func:`brdf_energy` and :func:`brdf_accuracy`: ``(basis, P, cutoff)``."""
+    _check_callable(brdf)
+    _check_dtype(dtype)
+    b = _basis(basis)
+    P = b.check_order(order)
+    return b, P, _check_control(tol, max_evaluations, grazing_cutoff, method)
+
+
+def _fixed_info(n_theta, n_phi, evaluations=None) -> Dict[str, object]:
+    """The ``info`` of a fixed rule (no error estimate)."""
+    return {"error_estimate": None, "n_theta": n_theta, "n_phi": n_phi, "evaluations": evaluations,
+            "converged": None, "history": []}
+
+
 def _use_reduced(b: Basis, reduced) -> bool:
     if reduced is None:
         return bool(b.isotropic)
@@ -75,8 +90,7 @@ def _controlled(brdf, b: Basis, P: int, n_theta, n_phi, reduced, cutoff, tol, ma
     if n_theta is not None or n_phi is not None or tol is None:
         nt, npf = _sizes(P, n_theta, n_phi)
         r = ev(nt, npf)
-        return r, {"error_estimate": None, "n_theta": nt, "n_phi": npf, "evaluations": r.evaluations,
-                   "converged": None, "history": []}
+        return r, _fixed_info(nt, npf, r.evaluations)
     nt, npf = _start_sizes(P, red)
     return _adaptive(ev, metric, nt, npf, float(tol), max_evaluations, strict, what, hint)
 
@@ -158,21 +172,15 @@ def project(
         >>> round(float(a[0]), 12), float(a[1:].abs().max()) < 1e-12   # Lambertian: 2 rho
         (1.0, True)
     """
-    _check_callable(brdf)
-    _check_dtype(dtype)
-    b = _basis(basis)
-    P = b.check_order(order)
+    b, P, cutoff = _prepare(brdf, basis, order, dtype, tol, max_evaluations, grazing_cutoff, method)
     K = b.num_functions(P)
-    cutoff = _check_control(tol, max_evaluations, grazing_cutoff, method)
     fixed = n_theta is not None or n_phi is not None or tol is None
     if method != "quadrature" or (fixed and grazing_cutoff is None and not _lowpass_pays(b, P, n_theta, n_phi)):
         acc = _project_fixed(brdf, b, P, K, method, n_theta, n_phi, n_samples, reduced, chunk_size, seed,
                              generator, dtype, device)
         if not return_info:
             return acc
-        nt, npf = _sizes(P, n_theta, n_phi) if method == "quadrature" else (None, None)
-        return acc, {"error_estimate": None, "n_theta": nt, "n_phi": npf, "evaluations": None,
-                     "converged": None, "history": []}
+        return acc, _fixed_info(*(_sizes(P, n_theta, n_phi) if method == "quadrature" else (None, None)))
     r, info = _controlled(brdf, b, P, n_theta, n_phi, reduced, cutoff, tol, max_evaluations, strict, True, False,
                           lambda f, c: _rel_change(f.a, c.a), "project", _PROJECT_HINT, dtype, device)
     out = _squeeze(r.a, r)
@@ -247,11 +255,7 @@ def brdf_energy(
         >>> abs(float(e) - 4 * math.pi**2) < 1e-9
         True
     """
-    _check_callable(brdf)
-    _check_dtype(dtype)
-    b = _basis(basis)
-    P = b.check_order(order)
-    cutoff = _check_control(tol, max_evaluations, grazing_cutoff, method)
+    b, P, cutoff = _prepare(brdf, basis, order, dtype, tol, max_evaluations, grazing_cutoff, method)
     fixed = n_theta is not None or n_phi is not None or tol is None
     if method != "quadrature" or (fixed and grazing_cutoff is None):
         acc = None
@@ -262,9 +266,7 @@ def brdf_energy(
             acc = part if acc is None else acc + part
         if not return_info:
             return acc
-        nt, npf = _sizes(P, n_theta, n_phi) if method == "quadrature" else (None, None)
-        return acc, {"error_estimate": None, "n_theta": nt, "n_phi": npf, "evaluations": None,
-                     "converged": None, "history": []}
+        return acc, _fixed_info(*(_sizes(P, n_theta, n_phi) if method == "quadrature" else (None, None)))
     r, info = _controlled(brdf, b, P, n_theta, n_phi, reduced, cutoff, tol, max_evaluations, strict, False, True,
                           lambda f, c: _rel_change(f.E[:, None], c.E[:, None]), "brdf_energy", _ENERGY_HINT,
                           dtype, device)
@@ -305,11 +307,7 @@ def brdf_accuracy(
         >>> [round(float(x), 9) for x in acc]   # a constant is captured at order 0
         [1.0, 1.0, 1.0]
     """
-    _check_callable(brdf)
-    _check_dtype(dtype)
-    b = _basis(basis)
-    P = b.check_order(order)
-    cutoff = _check_control(tol, max_evaluations, grazing_cutoff, "quadrature")
+    b, P, cutoff = _prepare(brdf, basis, order, dtype, tol, max_evaluations, grazing_cutoff, "quadrature")
 
     def acc_of(r):
         return energy_accuracy(r.a, r.E, basis=b, order=P)
