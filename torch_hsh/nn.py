@@ -28,7 +28,7 @@ from typing import Any, Dict, Optional, Sequence, Tuple, Union
 import torch
 from torch import nn
 
-from ._checks import MAX_ANISOTROPIC_ORDER, check_order, check_tensor
+from ._checks import MAX_ANISOTROPIC_ORDER, check_order, check_shape, check_tensor
 from .bases.helmholtz import albedo_terms
 from .kernel import (
     anisotropic_indices,
@@ -229,13 +229,10 @@ class HelmholtzBRDF(nn.Module):
     def _initial_coefficients(init, rho, channels, k, dtype, device) -> torch.Tensor:
         if isinstance(init, torch.Tensor):
             check_tensor(init, "init")
+            # C channels, K basis functions
+            check_shape(init, "init", ("C", "K"), ("K",), sizes={"C": channels, "K": k})
             if init.shape == (k,):
                 init = init.unsqueeze(0).expand(channels, k)
-            if tuple(init.shape) != (channels, k):
-                raise ValueError(
-                    f"`init` tensor must have shape ({channels}, {k}) or ({k},) "
-                    f"(channels, number of basis functions), got {tuple(init.shape)}"
-                )
             return init.detach().to(dtype=dtype, device=device).clone()
         if not isinstance(init, str):
             raise TypeError(f"`init` must be 'lambertian', 'zeros' or a tensor, got {type(init).__name__}")
@@ -358,12 +355,7 @@ class HelmholtzBRDF(nn.Module):
         if coeffs is None:
             return self.coefficients
         check_tensor(coeffs, "coeffs", min_dims=2)
-        k = self.num_functions
-        if coeffs.shape[-1] != k or coeffs.shape[-2] != self.channels:
-            raise ValueError(
-                f"`coeffs` must have shape (..., {self.channels}, {k}) (channels, number of basis "
-                f"functions for order={self.order}, isotropic={self.isotropic}), got {tuple(coeffs.shape)}"
-            )
+        check_shape(coeffs, "coeffs", ("*", self.channels, self.num_functions))  # (..., channels, basis functions)
         if coeffs.dtype != ref.dtype:
             raise TypeError(f"`coeffs` has dtype {coeffs.dtype} but the directions are {ref.dtype}")
         if coeffs.device != ref.device:

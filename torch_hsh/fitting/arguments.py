@@ -6,7 +6,7 @@ from typing import Tuple, Union
 
 import torch
 
-from .._checks import validation_enabled
+from .._checks import check_shape, validation_enabled
 from ..bases import Basis, get_basis
 
 BasisLike = Union[str, Basis]
@@ -84,9 +84,8 @@ def _call_brdf(brdf, wi, wo, name="brdf"):
     v = brdf(wi, wo)
     if not isinstance(v, torch.Tensor):
         raise TypeError(f"`{name}` must return a torch.Tensor, got {type(v).__name__}")
-    M = wi.shape[0]
-    if v.dim() == 0 or v.shape[0] != M or v.dim() > 2:
-        raise ValueError(f"`{name}` called with ({M}, 3) directions must return ({M},) or ({M}, C), got {tuple(v.shape)}")
+    # called with (M, 3) directions, it must return (M,) or (M, C)
+    check_shape(v, f"{name}(wi, wo)", ("M",), ("M", "C"), sizes={"M": wi.shape[0]})
     if not v.is_floating_point():
         v = v.to(wi.dtype)
     if validation_enabled() and not bool(torch.isfinite(v).all()):

@@ -6,7 +6,7 @@ from typing import Dict, Optional
 
 import torch
 
-from .._checks import broadcast_shapes, check_dirs, check_same, check_tensor, validation_enabled
+from .._checks import broadcast_shapes, check_dirs, check_same, check_shape, check_tensor, validation_enabled
 from .arguments import _DEFAULT, BasisLike, _basis
 
 __all__ = ["fit"]
@@ -141,8 +141,7 @@ def _check_samples(wi: torch.Tensor, wo: torch.Tensor, values: torch.Tensor):
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
     per_brdf = len(lead) == 2
     N = lead[-1]
-    if values.dim() > 3:
-        raise ValueError(f"`values` must be (N,), (N, C), (B, N) or (B, N, C), got {tuple(values.shape)}")
+    check_shape(values, "values", ("N",), ("N", "C"), ("B", "N"), ("B", "N", "C"))
     # normalise values to (Bv, N, C) and remember the output layout
     if values.dim() == 1:
         if per_brdf:
@@ -187,12 +186,8 @@ def _sample_weights(weights: Optional[torch.Tensor], values: torch.Tensor, N: in
     check_tensor(weights, "weights", min_dims=1)
     if weights.device != values.device:
         raise ValueError(f"`weights` is on {weights.device} but `values` is on {values.device}")
-    if weights.dim() == 1 and weights.shape[0] == N:
-        wt = weights.to(f64)[None]
-    elif weights.dim() == 2 and weights.shape[1] == N and weights.shape[0] in (1, Bn):
-        wt = weights.to(f64)
-    else:
-        raise ValueError(f"`weights` must be (N,) or (B, N) with N={N}, B={Bn}; got {tuple(weights.shape)}")
+    check_shape(weights, "weights", ("N",), (1, "N"), ("B", "N"), sizes={"N": N, "B": Bn})
+    wt = weights.to(f64)[None] if weights.dim() == 1 else weights.to(f64)
     if validation_enabled():
         if bool((wt < 0).any()):
             raise ValueError("`weights` must be non-negative")

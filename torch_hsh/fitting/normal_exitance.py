@@ -7,7 +7,7 @@ from typing import Callable, Optional
 import torch
 
 from .. import kernel as _hb
-from .._checks import check_tensor, validation_enabled
+from .._checks import check_shape, check_tensor, validation_enabled
 from ..quadrature import gauss_legendre
 from .arguments import _TWO_PI, _check_dtype
 
@@ -109,8 +109,8 @@ def _call_1d(brdf_1d, z):
     g = brdf_1d(z)
     if not isinstance(g, torch.Tensor):
         raise TypeError(f"`brdf_1d` must return a torch.Tensor, got {type(g).__name__}")
-    if g.dim() == 0 or g.dim() > 2 or g.shape[0] != z.shape[0]:
-        raise ValueError(f"`brdf_1d` called with ({z.shape[0]},) must return ({z.shape[0]},) or ({z.shape[0]}, C), got {tuple(g.shape)}")
+    # called with (M,) cosines, it must return (M,) or (M, C)
+    check_shape(g, "brdf_1d(cos_theta_i)", ("M",), ("M", "C"), sizes={"M": z.shape[0]})
     g = g.to(z.dtype)
     if validation_enabled() and not bool(torch.isfinite(g).all()):
         raise ValueError("`brdf_1d` returned NaN/Inf values at interior Gauss-Legendre nodes")

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .._checks import broadcast_shapes, check_dirs, check_same
+from .._checks import broadcast_shapes, check_dirs, check_same, check_shape
 
 __all__ = [
     "MERL_SHAPE",
@@ -224,8 +224,9 @@ def _as_table(x, name) -> torch.Tensor:
         raise TypeError(f"`{name}` must be a MERLBRDF, a torch.Tensor or a numpy array, got {type(x).__name__}")
     if x.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"`{name}` must be float32 or float64, got dtype {x.dtype}")
-    if x.dim() != 4 or x.shape[0] != 3 or any(s == 0 for s in x.shape):
-        raise ValueError(f"`{name}` must have shape (3, N_theta_h, N_theta_d, N_phi_d), got {tuple(x.shape)}")
+    check_shape(x, name, (3, "N_theta_h", "N_theta_d", "N_phi_d"))
+    if any(s == 0 for s in x.shape):
+        raise ValueError(f"`{name}` must have at least one bin in each dimension, got shape {tuple(x.shape)}")
     return x
 
 
@@ -813,8 +814,8 @@ def _fit_weights(brdf: "MERLBRDF", weights: Optional[torch.Tensor]) -> torch.Ten
     if weights is None:
         return merl_solid_angle_weights(shape, device=dev)
     check_tensor(weights, "weights")
-    if tuple(weights.shape) != shape:
-        raise ValueError(f"`weights` must have the table's shape {shape}, got {tuple(weights.shape)}")
+    check_shape(weights, "weights", ("N_theta_h", "N_theta_d", "N_phi_d"),  # the table's bins
+                sizes=dict(zip(("N_theta_h", "N_theta_d", "N_phi_d"), shape)))
     wgt = weights.to(device=dev, dtype=torch.float64)
     if not bool(torch.isfinite(wgt).all()) or bool((wgt < 0).any()):
         raise ValueError("`weights` must be finite and >= 0")
