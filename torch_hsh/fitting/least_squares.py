@@ -136,8 +136,8 @@ def _check_samples(wi: torch.Tensor, wo: torch.Tensor, values: torch.Tensor):
     check_same([("wi", wi), ("wo", wo)])
     check_tensor(values, "values", min_dims=1)
     check_same([("wi", wi), ("values", values)])
-    if wi.dim() not in (2, 3) or wo.dim() not in (2, 3):
-        raise ValueError(f"`wi`/`wo` must be (N, 3) or (B, N, 3), got {tuple(wi.shape)} and {tuple(wo.shape)}")
+    for name, d in (("wi", wi), ("wo", wo)):
+        check_shape(d, name, ("N", 3), ("B", "N", 3))
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
     per_brdf = len(lead) == 2
     N = lead[-1]
