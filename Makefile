@@ -62,7 +62,8 @@ $(MUTATION_STAMP): $(STAMP) pyproject.toml
 	$(PY) -m pip install -q -e ".[mutation]"
 	touch $(MUTATION_STAMP)
 
-# Mutation testing (mutmut) of kernel.py (the basis kernel), fitting.py and _integrate.py, each judged by its own tests only
+# Mutation testing (mutmut) of kernel.py (the basis kernel), the fitting package and its product rules (fitting/rules.py,
+# fitting/convergence.py; "_integrate" in tools/mutate.py), each judged by its own tests only
 # (tools/mutate.py; scratch copies and mutmut's cache in build/mutmut/<module>/). Not part of CI: kernel.py
 # alone takes about 40 min on 2 loaded cores. ARGS="kernel" runs one module, ARGS="kernel --max-children 2".
 mutate: $(MUTATION_STAMP)
