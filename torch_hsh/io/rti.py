@@ -76,12 +76,12 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
-from .diligent import PhotometricDataset, _read_png, _read_text, _to_numpy, _write_png
+from .diligent import PhotometricDataset, _output_folder, _read_png, _read_text, _to_numpy, _write_png
 
 __all__ = [
     "read_lp",
@@ -334,6 +334,39 @@ def read_image(path) -> Tuple[np.ndarray, int]:
     return a[..., :3].astype(np.float64) / float((1 << bits) - 1), bits
 
 
+def _read_photographs(paths: Sequence[Path], missing: Callable[[int, Path], str],
+                      convert: Optional[Callable[[np.ndarray], np.ndarray]] = None, dtype=np.float64) -> np.ndarray:
+    """The stack of the photographs ``paths`` (:func:`read_image`), each passed through ``convert``.
+
+    Every photograph must have the first one's size and bit depth (``ValueError`` naming the odd one);
+    a missing one raises ``FileNotFoundError`` with the message ``missing(index, path)``.
+
+    Returns:
+        ``(N, *convert(image).shape)`` array of ``dtype`` (``(N, H, W, 3)`` without ``convert``).
+    """
+    images: Optional[np.ndarray] = None
+    bits0 = None
+    shape0 = None
+    for i, f in enumerate(paths):
+        if not f.is_file():
+            raise FileNotFoundError(missing(i, f))
+        img, bits = read_image(f)
+        if shape0 is None:
+            shape0, bits0 = img.shape, bits
+        elif img.shape != shape0:
+            raise ValueError(f"{f}: image size {img.shape[1]}x{img.shape[0]} (WxH) differs from the first image's "
+                             f"{shape0[1]}x{shape0[0]} ({paths[0].name})")
+        elif bits != bits0:
+            raise ValueError(f"{f}: bit depth {bits} differs from the first image's {bits0}")
+        img = img if convert is None else convert(img)
+        if images is None:
+            images = np.empty((len(paths),) + img.shape, dtype=dtype)
+        images[i] = img
+    if images is None:
+        raise ValueError("no photographs to read")
+    return images
+
+
 def _read_mask(path: Path, shape) -> np.ndarray:
     if path.suffix.lower() == ".png":
         m = _read_png(path)
@@ -411,22 +444,9 @@ def load_rti(
     if not names:
         raise ValueError(f"{lp_path}: no images left after drop_first={drop_first}, max_images={max_images}")
     _check_light_geometry(lights, lp_path, first_row=int(drop_first) + 1, check_rank=check_lights)
-    images: Optional[np.ndarray] = None
-    bits0 = None
-    for i, f in enumerate(paths):
-        if not f.is_file():
-            raise FileNotFoundError(f"{lp_path}: image {names[i]!r} (number {i + 1 + int(drop_first)}) not found: {f}")
-        img, bits = read_image(f)
-        if images is None:
-            bits0 = bits
-            images = np.empty((len(paths),) + img.shape, dtype=np.float32 if dtype == torch.float32 else np.float64)
-        elif img.shape != images.shape[1:]:
-            raise ValueError(f"{f}: image size {img.shape[1]}x{img.shape[0]} (WxH) differs from the first image's "
-                             f"{images.shape[2]}x{images.shape[1]} ({paths[0].name})")
-        elif bits != bits0:
-            raise ValueError(f"{f}: bit depth {bits} differs from the first image's {bits0}")
-        images[i] = img if linear else srgb_decode(img)
-    assert images is not None
+    images = _read_photographs(
+        paths, lambda i, f: f"{lp_path}: image {names[i]!r} (number {i + 1 + int(drop_first)}) not found: {f}",
+        convert=None if linear else srgb_decode, dtype=np.float32 if dtype == torch.float32 else np.float64)
     shape = images.shape[1:3]
     if mask is not None:
         mpath = Path(mask)
@@ -446,17 +466,6 @@ def load_rti(
                               mask=torch.as_tensor(m).to(device=device), normals_gt=None, names=list(names),
                               path=folder)
 
-
-
-def _output_folder(path, overwrite: bool) -> Path:
-    """Create the output folder ``path``; an existing non-empty one only with ``overwrite``."""
-    folder = Path(path)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"`path` {folder} exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
-    folder.mkdir(parents=True, exist_ok=True)
-    return folder
 
 def save_rti(
     path,
