@@ -21,7 +21,7 @@ from typing import Optional, Tuple, Union
 import torch
 import torch.nn.functional as F
 
-from ._checks import check_count, check_dirs, check_tensor
+from ._checks import check_count, check_dirs, check_shape, check_tensor
 
 __all__ = [
     "sphere_normals",
@@ -543,11 +543,9 @@ def cast_shadow_mask(
         (False, True, True)
     """
     check_tensor(height, "height")
-    if height.dim() != 2:
-        raise ValueError(f"`height` must have shape (H, W), got {tuple(height.shape)}")
+    check_shape(height, "height", ("H", "W"))
     check_dirs(lights, "lights")
-    if lights.dim() != 2:
-        raise ValueError(f"`lights` must have shape (L, 3), got {tuple(lights.shape)}")
+    check_shape(lights, "lights", ("L", 3))
     ps = _positive(pixel_size, "pixel_size")
     if n_steps is not None:
         n_steps = check_count(n_steps, "n_steps", minimum=0)
