@@ -81,6 +81,7 @@ from typing import Callable, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from .._checks import check_shape
 from .diligent import PhotometricDataset, _output_folder, _read_png, _read_text, _to_numpy, _write_png
 
 __all__ = [
@@ -233,8 +234,7 @@ def write_lp(path, names: Sequence[str], lights, overwrite: bool = False) -> Pat
     """
     p = Path(path)
     li = np.asarray(lights.detach().cpu().numpy() if isinstance(lights, torch.Tensor) else lights, dtype=np.float64)
-    if li.ndim != 2 or li.shape[1] != 3 or li.shape[0] != len(names):
-        raise ValueError(f"`lights` must have shape ({len(names)}, 3), got {li.shape}")
+    check_shape(li, "lights", ("N", 3), sizes={"N": len(names)})
     norms = np.linalg.norm(li, axis=1)
     if not np.isfinite(li).all() or (norms < MIN_LIGHT_NORM).any():
         raise ValueError("`lights` must be finite non-zero vectors")
@@ -513,11 +513,11 @@ def save_rti(
 
     imgs = _to_numpy(images, "images").astype(np.float64)
     li = _to_numpy(lights, "lights").astype(np.float64)
-    if imgs.ndim != 4 or imgs.shape[-1] != 3 or imgs.shape[0] == 0:
-        raise ValueError(f"`images` must have shape (L, H, W, 3) with L >= 1, got {imgs.shape}")
+    sizes = check_shape(imgs, "images", ("L", "H", "W", 3))
     n = imgs.shape[0]
-    if li.shape != (n, 3):
-        raise ValueError(f"`lights` must have shape ({n}, 3), got {li.shape}")
+    if n == 0:
+        raise ValueError("`images` must hold at least one image")
+    check_shape(li, "lights", ("L", 3), sizes=sizes)
     if not np.isfinite(imgs).all():
         raise ValueError("`images` contains NaN or Inf values")
     fmt = fmt.lower().lstrip(".")
@@ -548,8 +548,7 @@ def save_rti(
             Image.fromarray(c).save(f)
     if mask is not None:
         m = _to_numpy(mask, "mask").astype(bool)
-        if m.shape != imgs.shape[1:3]:
-            raise ValueError(f"`mask` must have shape {imgs.shape[1:3]}, got {m.shape}")
+        check_shape(m, "mask", ("H", "W"), sizes=sizes)
         _write_png(folder / "mask.png", m.astype(np.uint8) * 255)
     write_lp(folder / lp_name, names, li, overwrite=overwrite)
     return folder
@@ -559,10 +558,9 @@ def save_rti(
 # --------------------------------------------------------------------------- #
 # HSH RTI output
 # --------------------------------------------------------------------------- #
-def _coeff_maps(coefficients, what: str) -> np.ndarray:
+def _coeff_maps(coefficients) -> np.ndarray:
     c = _to_numpy(coefficients, "coefficients").astype(np.float64)
-    if c.ndim != 4 or c.shape[2] != 3 or c.shape[3] not in (9, 16):
-        raise ValueError(f"`coefficients` must have shape (H, W, 3, T) with T 9 or 16 for {what}, got {c.shape}")
+    check_shape(c, "coefficients", ("H", "W", 3, 9), ("H", "W", 3, 16))  # the 9 or 16 terms of the RTI HSH basis
     if not np.isfinite(c).all():
         raise ValueError("`coefficients` contains NaN or Inf values")
     return c
@@ -591,7 +589,7 @@ def write_rti_hsh(path, coefficients, overwrite: bool = False) -> Path:
     Example:
         >>> write_rti_hsh("object.rti", project_to_rti(res.normals, res.coefficients, 9))  # doctest: +SKIP
     """
-    c = _coeff_maps(coefficients, ".rti")
+    c = _coeff_maps(coefficients)
     H, W, _, T = c.shape
     p = Path(path)
     if p.exists() and not overwrite:
@@ -632,7 +630,7 @@ def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwr
 
     from PIL import Image
 
-    c = _coeff_maps(coefficients, "relight")
+    c = _coeff_maps(coefficients)
     if c.shape[3] != 9:
         raise ValueError(f"relight/OpenLIME evaluate 9 HSH terms; got {c.shape[3]}")
     fmt = fmt.lower().lstrip(".")
