@@ -73,6 +73,18 @@ def run_script(script: str, *args, timeout: float = 600) -> Run:
     return r
 
 
+def load_example(script: str):
+    """Import the script ``script`` (relative to the repository root) as a module, in this process, without
+    running it (its ``if __name__ == "__main__"`` block): a test then calls its ``main(argv)`` or helpers."""
+    import importlib.util
+
+    path = ROOT / script
+    spec = importlib.util.spec_from_file_location(f"{path.stem}_example", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def _last_digit(s: str) -> float:
     """One unit in the last printed digit of a number as written (``0.0216128`` -> 1e-7, ``4.4e-11`` -> 1e-12)."""
     m = re.fullmatch(r"[-+]?\d*(?:\.(\d*))?(?:[eE]([-+]?\d+))?", s.strip())

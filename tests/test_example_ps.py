@@ -1,19 +1,14 @@
 """End-to-end check of the README demo (examples/photometric_stereo.py) and its output contract."""
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from _scripts import ROOT, load_example
 
 
 def _load_example():
-    spec = importlib.util.spec_from_file_location("ps_example", ROOT / "examples" / "photometric_stereo.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_example("examples/photometric_stereo.py")
 
 
 @pytest.mark.slow

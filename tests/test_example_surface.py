@@ -1,6 +1,4 @@
 """End-to-end check of examples/surface_from_normals.py on a small DiLiGenT-layout folder."""
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,14 +9,11 @@ from torch_hsh.io.diligent import save_diligent
 from torch_hsh.scenes import sphere_normals
 from torch_hsh.surface import integrate_normals
 
-ROOT = Path(__file__).resolve().parents[1]
+from _scripts import load_example
 
 
 def _load_example():
-    spec = importlib.util.spec_from_file_location("surface_example", ROOT / "examples" / "surface_from_normals.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_example("examples/surface_from_normals.py")
 
 
 def test_example_writes_depth_mesh_and_pictures(tmp_path):

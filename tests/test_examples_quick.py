@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from _scripts import TABLES, compare_rows, read_csv, read_md_tables, run_script
+from _scripts import TABLES, compare_rows, load_example, read_csv, read_md_tables, run_script
 
 PAPER = "examples/paper"
 
@@ -152,17 +152,6 @@ def test_merl_stand_ins_quick(tmp_path):
 
 
 # --------------------------------------------------------------------------- examples
-def _load_train_example():
-    import importlib.util
-
-    from _scripts import ROOT
-
-    spec = importlib.util.spec_from_file_location("train_brdf_example", ROOT / "examples" / "train_brdf.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_train_brdf_reaches_least_squares_optimum(tmp_path):
     """``--quick``: the Adam fit's training RMSE is within 1 % of the least-squares optimum, computed here
     independently with ``torch_hsh.fit`` on the same samples (regenerated from the seed)."""
@@ -176,7 +165,7 @@ def test_train_brdf_reaches_least_squares_optimum(tmp_path):
     model = torch_hsh.HelmholtzBRDF(saved["order"], channels=saved["channels"])
     model.load_state_dict(saved["state_dict"])
 
-    mod = _load_train_example()
+    mod = load_example("examples/train_brdf.py")
     gen = torch.Generator().manual_seed(saved["seed"])
     target = BlinnPhong(kd=[0.60, 0.35, 0.20], ks=0.4, shininess=8.0)
     wi, wo, f = mod.make_samples(target, saved["train_samples"], gen, torch.device("cpu"))

@@ -379,13 +379,9 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
 
 
 def test_example_capture_and_lights_command(tmp_path):
-    import importlib.util
-    from pathlib import Path
+    from _scripts import load_example
 
-    path = Path(__file__).resolve().parents[1] / "examples" / "rti_capture.py"
-    spec = importlib.util.spec_from_file_location("rti_capture", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_example("examples/rti_capture.py")
     out = tmp_path / "cap"
     mod.main(["--out", str(out), "--size", "48", "--lights", "12"])
     assert cli.main(["lights", str(out), "--sphere-mask", str(out / "sphere_mask.png"), "--out",

@@ -58,21 +58,34 @@ def validation_enabled() -> bool:
 
 def check_order(order, name: str = "order", max_order: int = MAX_ORDER) -> int:
     """Return ``order`` as a Python int or raise a clear error."""
-    if isinstance(order, bool) or isinstance(order, float):
-        raise TypeError(f"`{name}` must be a non-negative integer, got {order!r} ({type(order).__name__})")
     if isinstance(order, torch.Tensor):
         if order.numel() != 1 or order.is_floating_point() or order.is_complex():
             raise TypeError(f"`{name}` must be a non-negative integer, got a tensor {order!r}")
         order = int(order.item())
-    try:
-        order = operator.index(order)
-    except TypeError:
-        raise TypeError(f"`{name}` must be a non-negative integer, got {order!r} ({type(order).__name__})") from None
-    if order < 0:
-        raise ValueError(f"`{name}` must be >= 0, got {order}")
+    order = check_count(order, name)
     if order > max_order:
         raise ValueError(f"`{name}` must be <= {max_order} (the supported maximum), got {order}")
     return order
+
+
+def check_count(value, name: str, minimum: int = 0) -> int:
+    """Return ``value`` as a Python int ``>= minimum`` (a bool or a float is refused) or raise a clear error.
+
+    Example:
+        >>> from torch_hsh._checks import check_count
+        >>> check_count(3, "n_lights", minimum=3)
+        3
+    """
+    kind = "a non-negative integer" if minimum == 0 else "an integer"
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        value = operator.index(value)
+    except TypeError:
+        raise TypeError(f"`{name}` must be {kind}, got {value!r} ({type(value).__name__})") from None
+    if value < minimum:
+        raise ValueError(f"`{name}` must be >= {minimum}, got {value}")
+    return value
 
 
 def check_tensor(

@@ -51,35 +51,36 @@ Example::
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import os
-import secrets
 import shutil
-import signal
 import sys
 import tempfile
 import time
 import traceback
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 import numpy as np
 import torch
 
+from ._cli_common import InputError, _add_common
+from ._result_folder import (  # noqa: F401  (MANIFEST_VERSION, is_result_folder: importable from here as before)
+    MANIFEST,
+    MANIFEST_FORMAT,
+    MANIFEST_VERSION,
+    _check_out,
+    _dump_json,
+    _jsonable,
+    _Staging,
+    _umask,
+    is_result_folder,
+)
+
 __all__ = ["main", "ps_main", "synthetic_scene", "MANIFEST", "MANIFEST_FORMAT", "is_result_folder"]
 
 PROG = "torch-hsh"
-MANIFEST = "manifest.json"
-MANIFEST_FORMAT = "torch-hsh-ps-result"
-MANIFEST_VERSION = 1
-
-
-class InputError(Exception):
-    """A bad input (file or data): reported as one line, exit status 1."""
-
 
 # --------------------------------------------------------------------------- #
 # argument types
@@ -133,215 +134,6 @@ def _parse_device(ap: argparse.ArgumentParser, spec: str) -> torch.device:
         ap.error(f"argument --device: unsupported device type {dev.type!r} (cpu, cuda, cuda:N or mps)")
     return dev
 
-
-# --------------------------------------------------------------------------- #
-# output folder: ownership, staging, swap commit
-# --------------------------------------------------------------------------- #
-def _read_manifest(folder: Path) -> Optional[dict]:
-    try:
-        meta = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    if not isinstance(meta, dict) or meta.get("format") != MANIFEST_FORMAT or not isinstance(meta.get("files"), dict):
-        return None
-    return meta
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _foreign_entries(folder: Path, meta: dict) -> List[str]:
-    """Entries of ``folder`` that are not ours as written: not listed in the manifest, not a plain file,
-    or changed since (size or SHA-256 differs from the manifest). A listed file that is gone is no loss."""
-    foreign = []
-    for p in sorted(folder.iterdir(), key=lambda q: q.name):
-        if p.name == MANIFEST:
-            continue
-        entry = meta["files"].get(p.name)
-        if not isinstance(entry, dict) or p.is_symlink() or not p.is_file():
-            foreign.append(p.name)
-            continue
-        try:
-            same = p.stat().st_size == entry.get("bytes") and _sha256(p) == entry.get("sha256")
-        except OSError:
-            same = False
-        if not same:
-            foreign.append(f"{p.name} (changed since the run)")
-    return foreign
-
-
-def is_result_folder(folder) -> bool:
-    """True if ``folder`` holds our ``manifest.json`` and nothing else than the files it lists, unchanged
-    (same size and SHA-256 as recorded): a file edited after the run makes the folder the user's."""
-    folder = Path(folder)
-    meta = _read_manifest(folder) if folder.is_dir() else None
-    if meta is None:
-        return False
-    return not _foreign_entries(folder, meta)
-
-
-def _check_out(ap: argparse.ArgumentParser, out: Path, overwrite: bool, option: str = "--out") -> Path:
-    """Static checks of the output folder (nothing is created): exit 2 on a bad ``--out``."""
-    out = Path(os.path.abspath(out))
-    cwd = Path(os.getcwd())
-    if out == cwd or out in cwd.parents or out == Path.home() or out.parent == out:
-        # never replaced as a whole, not even with --overwrite
-        ap.error(f"argument {option}: {out} is the current folder, one of its parents, the home folder or the "
-                 "root; give a folder of its own for the result")
-    if out.exists() and not out.is_dir():
-        ap.error(f"argument {option}: {out} exists and is not a folder")
-    if out.is_dir():
-        entries = sorted(p.name for p in out.iterdir())
-        meta = _read_manifest(out) if entries else None
-        foreign = entries if meta is None else _foreign_entries(out, meta)
-        if foreign and not overwrite:
-            shown = ", ".join(foreign[:5]) + (" ..." if len(foreign) > 5 else "")
-            ap.error(
-                f"argument {option}: {out} holds files that are not a torch-hsh result ({shown}); "
-                "choose another folder or pass --overwrite to replace the whole folder"
-            )
-    anc = out.parent
-    while not anc.exists():
-        anc = anc.parent
-    if not anc.is_dir():
-        ap.error(f"argument {option}: cannot create {out}: {anc} is not a folder")
-    if not os.access(anc, os.W_OK | os.X_OK):
-        ap.error(f"argument {option}: cannot create {out}: {anc} is not writable")
-    # os.access says yes to root everywhere (e.g. /proc): try it, with an empty folder removed at once
-    try:
-        os.rmdir(tempfile.mkdtemp(prefix=".torch-hsh-probe.", dir=anc))
-    except OSError as err:
-        ap.error(f"argument {option}: cannot create {out}: {anc} does not accept new folders ({err.strerror})")
-    return out
-
-
-@contextmanager
-def _signals_held():
-    """Hold SIGINT/SIGTERM (delivered on exit) around a few renames, where the platform allows."""
-    sigs = {signal.SIGINT, signal.SIGTERM}
-    if not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
-
-
-class _Staging:
-    """A temporary folder beside ``target``; :meth:`commit` swaps it into place.
-
-    Leaving the ``with`` block without a commit (error, Ctrl-C) removes the
-    temporary folder and leaves ``target`` as it was.
-    """
-
-    def __init__(self, target: Path):
-        self.target = target
-        self.path: Optional[Path] = None
-        self.files: List[str] = []
-        self.created: List[Path] = []
-
-    def __enter__(self) -> "_Staging":
-        # the parent folders this run creates: removed again (if still empty) when it does not commit
-        self.created = []
-        anc = self.target.parent
-        while not anc.exists():
-            self.created.append(anc)
-            anc = anc.parent
-        try:
-            self.target.parent.mkdir(parents=True, exist_ok=True)
-            self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".partial",
-                                              dir=self.target.parent))
-        except BaseException:
-            self._remove_created()
-            raise
-        os.chmod(self.path, 0o777 & ~_umask())  # mkdtemp makes 0700; a result folder is an ordinary folder
-        return self
-
-    def _remove_created(self) -> None:
-        for d in self.created:  # deepest first; a folder something else has written into stays
-            try:
-                d.rmdir()
-            except OSError:
-                break
-
-    def __exit__(self, *exc) -> None:
-        if self.path is not None and self.path.exists():
-            shutil.rmtree(self.path, ignore_errors=True)
-            self._remove_created()
-
-    @property
-    def folder(self) -> Path:
-        """The staging folder (only inside the ``with`` block, before the commit)."""
-        if self.path is None:
-            raise RuntimeError("the staging folder is not open")
-        return self.path
-
-    def file(self, name: str) -> Path:
-        self.files.append(name)
-        return self.folder / name
-
-    def write_manifest(self, meta: Dict[str, Any]) -> None:
-        files = {}
-        for name in self.files:
-            p = self.folder / name
-            files[name] = {"bytes": p.stat().st_size, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()}
-        manifest = dict(meta, format=MANIFEST_FORMAT, format_version=MANIFEST_VERSION, files=files)
-        tmp = self.folder / (MANIFEST + ".tmp")
-        tmp.write_text(json.dumps(manifest, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        os.replace(tmp, self.folder / MANIFEST)
-
-    def commit(self) -> None:
-        """Old result aside, new one in place (signals held), then the old one removed."""
-        old = None
-        with _signals_held():
-            if self.target.exists():
-                old = self.target.parent / f".{self.target.name}.old-{secrets.token_hex(4)}"
-                os.rename(self.target, old)
-            try:
-                os.rename(self.folder, self.target)
-            except BaseException:
-                if old is not None:
-                    os.rename(old, self.target)
-                raise
-            self.path = None
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-
-
-def _umask() -> int:
-    from .io.merl import _current_umask
-
-    return _current_umask()
-
-
-def _jsonable(x):
-    """Plain JSON values: NaN/Inf -> None, tensors/arrays -> lists, numpy scalars -> Python."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, torch.Tensor):
-        return _jsonable(x.detach().cpu().tolist())
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        return _jsonable(x.item())
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if x is None or isinstance(x, (bool, int, str)):
-        return x
-    return str(x)
-
-
-def _dump_json(path: Path, obj) -> None:
-    path.write_text(json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n", encoding="utf-8")
 
 
 # --------------------------------------------------------------------------- #
@@ -519,11 +311,6 @@ def _confidence_summary(conf: np.ndarray, mask: np.ndarray) -> Dict[str, Any]:
 # --------------------------------------------------------------------------- #
 # ps
 # --------------------------------------------------------------------------- #
-def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--debug", action="store_true", help="show the traceback of an error")
-    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
-
-
 def _ps_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "ps", help="photometric stereo (HSH solver vs Lambertian baselines)",

@@ -25,18 +25,50 @@ import argparse
 import math
 import os
 from pathlib import Path
-from typing import Any, Dict, List, Tuple
+from typing import Any, Callable, Dict, List, Tuple
 
 import numpy as np
+
+from ._cli_common import InputError, _add_common
 
 __all__ = ["add_rti_commands"]  # lights, rti, view
 
 
+def add_rti_commands(sub) -> None:
+    """Add the ``lights``, ``rti`` and ``view`` subparsers to the ``torch-hsh`` subparsers ``sub``."""
+    _subcommand(
+        sub, "lights", _run_lights, _lights_arguments, "replace an existing --out file",
+        help="light directions from a glossy sphere (highlight RTI), written as an .lp file",
+        description="Estimate each image's light direction from the highlight on a glossy sphere in the frame "
+                    "(orthographic view along +z; x right, y up, z toward the camera) and write an .lp file.",
+    )
+    _subcommand(
+        sub, "rti", _run_rti, _rti_arguments, "replace existing output files",
+        help="export a torch-hsh ps result as HSH RTI files (.rti for RTIViewer, relight/OpenLIME folder)",
+        description="Project the per-pixel image model of a torch-hsh ps result onto the RTI HSH basis "
+                    "(9 or 16 terms) and write RTIViewer's .rti and/or a relight/OpenLIME folder.",
+    )
+    _subcommand(
+        sub, "view", _run_view, _view_arguments, "replace an existing --out file",
+        help="write a self-contained HTML relighting viewer (WebGL2) of a torch-hsh ps result",
+        description="Write one HTML file (no network access; the maps are embedded) that relights the result "
+                    "with its per-pixel isotropic Helmholtz BRDF under a light that follows the mouse, and shows "
+                    "the normal map, the albedo, the confidence and the residual map.",
+    )
 
-def _add_exposure(p) -> None:
-    p.add_argument("--exposure", type=_float, default=None,
-                   help="factor on the radiance before the sRGB curve (default: 99.5th percentile of the head-on "
-                        "rendering maps to 0.8)")
+
+# --------------------------------------------------------------------------- #
+# what the three subcommands share
+# --------------------------------------------------------------------------- #
+def _subcommand(sub, name: str, handler, add_arguments: Callable[[argparse.ArgumentParser], None],
+                overwrite_help: str, **texts) -> None:
+    """One subparser: its own arguments, then ``--overwrite``, ``--debug`` and ``--quiet``; it runs ``handler``."""
+    p = sub.add_parser(name, **texts)
+    add_arguments(p)
+    p.add_argument("--overwrite", action="store_true", help=overwrite_help)
+    _add_common(p)
+    p.set_defaults(handler=handler, parser=p)
+
 
 def _float(text: str) -> float:
     try:
@@ -48,60 +80,60 @@ def _float(text: str) -> float:
     return v
 
 
-def add_rti_commands(sub) -> None:
-    """Add the ``lights``, ``rti`` and ``view`` subparsers to the ``torch-hsh`` subparsers ``sub``."""
-    from .cli import _add_common
+def _add_result(p) -> None:
+    p.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
 
-    p = sub.add_parser(
-        "lights", help="light directions from a glossy sphere (highlight RTI), written as an .lp file",
-        description="Estimate each image's light direction from the highlight on a glossy sphere in the frame "
-                    "(orthographic view along +z; x right, y up, z toward the camera) and write an .lp file.",
-    )
+
+def _add_exposure(p) -> None:
+    p.add_argument("--exposure", type=_float, default=None,
+                   help="factor on the radiance before the sRGB curve (default: 99.5th percentile of the head-on "
+                        "rendering maps to 0.8)")
+
+
+def _say(args) -> Callable[..., None]:
+    return (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+
+
+def _out_file(ap: argparse.ArgumentParser, path: str, suffixes: Tuple[str, ...], overwrite: bool) -> Path:
+    """Static checks of the ``--out`` file (nothing is written): exit 2 on a bad one."""
+    out = Path(os.path.abspath(path))
+    if out.suffix.lower() not in suffixes:
+        ap.error(f"argument --out: expected an {suffixes[0]} file name, got {out.name}")
+    if out.is_dir():
+        ap.error(f"argument --out: {out} is a folder")
+    if out.exists() and not overwrite:
+        ap.error(f"argument --out: {out} exists; pass --overwrite to replace it")
+    if not out.parent.is_dir():
+        ap.error(f"argument --out: the folder {out.parent} does not exist")
+    return out
+
+
+def _load_result(args, ap: argparse.ArgumentParser):
+    """The :class:`~torch_hsh.ps.HSHResult` of ``args.result`` (a result folder or its ``.npz``), after the
+    check of ``--exposure``."""
+    from .ps import HSHResult
+
+    if args.exposure is not None and not args.exposure > 0:
+        ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
+    src = Path(args.result)
+    try:
+        return HSHResult.load(src / "result.npz" if src.is_dir() else src)
+    except (OSError, ValueError) as err:
+        raise InputError(str(err)) from err
+
+
+# --------------------------------------------------------------------------- #
+# lights
+# --------------------------------------------------------------------------- #
+def _lights_arguments(p) -> None:
     p.add_argument("folder", help="RTI capture folder (photographs + .lp; its directions are ignored) or DiLiGenT folder")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--sphere-mask", metavar="MASK", help="image marking the sphere (> 0 on the sphere)")
     g.add_argument("--sphere-circle", nargs=3, type=_float, metavar=("CX", "CY", "R"),
                    help="sphere circle in pixels: centre column, centre row (pixel centres at integers), radius")
     p.add_argument("--out", required=True, help="output .lp file (refused if it exists unless --overwrite)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
-    _add_common(p)
-    p.set_defaults(handler=_run_lights, parser=p)
-
-    q = sub.add_parser(
-        "rti", help="export a torch-hsh ps result as HSH RTI files (.rti for RTIViewer, relight/OpenLIME folder)",
-        description="Project the per-pixel image model of a torch-hsh ps result onto the RTI HSH basis "
-                    "(9 or 16 terms) and write RTIViewer's .rti and/or a relight/OpenLIME folder.",
-    )
-    q.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
-    q.add_argument("--terms", type=int, choices=(9, 16), default=9, help="number of HSH terms (default 9)")
-    q.add_argument("--rti", default=None, help="write this .rti file (RTIViewer HSH)")
-    q.add_argument("--relight", default=None, help="write this relight/OpenLIME folder (info.json + plane_*.jpg; 9 terms)")
-    _add_exposure(q)
-    q.add_argument("--linear", action="store_true", help="store linear values instead of sRGB-encoded ones")
-    q.add_argument("--max-angle", default="auto",
-                   help="fit the lights within this many degrees of the view (default auto: the largest angle of the "
-                        "result's lights; 90: the whole hemisphere, an orthonormal projection)")
-    q.add_argument("--overwrite", action="store_true", help="replace existing output files")
-    _add_common(q)
-    q.set_defaults(handler=_run_rti, parser=q)
-
-    v = sub.add_parser(
-        "view", help="write a self-contained HTML relighting viewer (WebGL2) of a torch-hsh ps result",
-        description="Write one HTML file (no network access; the maps are embedded) that relights the result "
-                    "with its per-pixel isotropic Helmholtz BRDF under a light that follows the mouse, and shows "
-                    "the normal map, the albedo, the confidence and the residual map.",
-    )
-    v.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
-    v.add_argument("--out", required=True, help="output .html file (refused if it exists unless --overwrite)")
-    _add_exposure(v)
-    v.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
-    _add_common(v)
-    v.set_defaults(handler=_run_view, parser=v)
 
 
-# --------------------------------------------------------------------------- #
-# lights
-# --------------------------------------------------------------------------- #
 def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
     """Image paths of an RTI or DiLiGenT folder and a description of where they came from."""
     from .io.diligent import _is_aux_picture, _read_names
@@ -120,58 +152,45 @@ def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
     return [folder / n for n in names], f"{folder} (*.png)"
 
 
+def _sphere_circle(args, ap: argparse.ArgumentParser, shape: Tuple[int, int]) -> Tuple[float, float, float]:
+    """The sphere's circle ``(cx, cy, r)``: from ``--sphere-mask`` or ``--sphere-circle`` (inside the images)."""
+    from .io.rti import _read_mask
+    from .rti import sphere_circle_from_mask
+
+    H, W = shape
+    if args.sphere_mask is not None:
+        mpath = Path(args.sphere_mask)
+        if not mpath.is_file():
+            raise FileNotFoundError(f"{mpath}: sphere mask not found")
+        try:
+            return sphere_circle_from_mask(_read_mask(mpath, (H, W)))
+        except ValueError as err:
+            raise ValueError(f"{mpath}: {err}") from None
+    cx, cy, r = args.sphere_circle
+    if cx - r < -0.5 or cy - r < -0.5 or cx + r > W - 0.5 or cy + r > H - 0.5:
+        ap.error(f"argument --sphere-circle: the circle (cx={cx:g}, cy={cy:g}, r={r:g}) is not inside the "
+                 f"{W}x{H} images")
+    return cx, cy, r
+
+
 def _run_lights(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
-    from .cli import InputError
-    from .io.rti import _read_mask, read_image, write_lp
-    from .rti import sphere_circle_from_mask, sphere_light_directions
+    from .io.rti import _read_photographs, write_lp
+    from .rti import sphere_light_directions
 
-    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+    say = _say(args)
     folder = Path(args.folder)
     if not folder.is_dir():
         ap.error(f"argument folder: {folder} is not a folder")
-    out = Path(os.path.abspath(args.out))
-    if out.suffix.lower() != ".lp":
-        ap.error(f"argument --out: expected an .lp file name, got {out.name}")
-    if out.is_dir():
-        ap.error(f"argument --out: {out} is a folder")
-    if out.exists() and not args.overwrite:
-        ap.error(f"argument --out: {out} exists; pass --overwrite to replace it")
-    if not out.parent.is_dir():
-        ap.error(f"argument --out: the folder {out.parent} does not exist")
+    out = _out_file(ap, args.out, (".lp",), args.overwrite)
     if args.sphere_circle is not None and args.sphere_circle[2] < 3:
         ap.error(f"argument --sphere-circle: the radius must be >= 3 pixels, got {args.sphere_circle[2]:g}")
     try:
         paths, source = _capture_paths(folder)
-        images = None
-        for i, f in enumerate(paths):
-            if not f.is_file():
-                raise FileNotFoundError(f"{source}: image {i + 1} not found: {f}")
-            img, _ = read_image(f)
-            if images is None:
-                images = np.empty((len(paths),) + img.shape[:2])
-            elif img.shape[:2] != images.shape[1:]:
-                raise ValueError(f"{f}: image size {img.shape[1]}x{img.shape[0]} (WxH) differs from the first "
-                                 f"image's {images.shape[2]}x{images.shape[1]} ({paths[0].name})")
-            images[i] = img.mean(axis=-1)
-        assert images is not None
-        H, W = images.shape[1:]
-        if args.sphere_mask is not None:
-            mpath = Path(args.sphere_mask)
-            if not mpath.is_file():
-                raise FileNotFoundError(f"{mpath}: sphere mask not found")
-            m = _read_mask(mpath, (H, W))
-            try:
-                circle = sphere_circle_from_mask(m)
-            except ValueError as err:
-                raise ValueError(f"{mpath}: {err}") from None
-        else:
-            circle = tuple(args.sphere_circle)
-            cx, cy, r = circle
-            if cx - r < -0.5 or cy - r < -0.5 or cx + r > W - 0.5 or cy + r > H - 0.5:
-                ap.error(f"argument --sphere-circle: the circle (cx={cx:g}, cy={cy:g}, r={r:g}) is not inside the "
-                         f"{W}x{H} images")
+        images = _read_photographs(paths, lambda i, f: f"{source}: image {i + 1} not found: {f}",
+                                   convert=lambda img: img.mean(axis=-1))
+        circle = tuple(_sphere_circle(args, ap, images.shape[1:]))
         est = sphere_light_directions(torch.as_tensor(images), circle=circle, on_missing="keep")
     except (OSError, ValueError) as err:
         raise InputError(str(err)) from err
@@ -193,15 +212,25 @@ def _run_lights(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
 # --------------------------------------------------------------------------- #
 # rti export
 # --------------------------------------------------------------------------- #
+def _rti_arguments(q) -> None:
+    _add_result(q)
+    q.add_argument("--terms", type=int, choices=(9, 16), default=9, help="number of HSH terms (default 9)")
+    q.add_argument("--rti", default=None, help="write this .rti file (RTIViewer HSH)")
+    q.add_argument("--relight", default=None, help="write this relight/OpenLIME folder (info.json + plane_*.jpg; 9 terms)")
+    _add_exposure(q)
+    q.add_argument("--linear", action="store_true", help="store linear values instead of sRGB-encoded ones")
+    q.add_argument("--max-angle", default="auto",
+                   help="fit the lights within this many degrees of the view (default auto: the largest angle of the "
+                        "result's lights; 90: the whole hemisphere, an orthonormal projection)")
+
+
 def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
-    from .cli import InputError
     from .io.rti import save_relight, write_rti_hsh
-    from .ps import HSHResult
     from .rti import project_to_rti
 
-    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+    say = _say(args)
     if args.rti is None and args.relight is None:
         ap.error("give --rti OUT.rti and/or --relight OUT_DIR")
     if args.relight is not None and args.terms != 9:
@@ -209,8 +238,6 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     for opt, val in (("--rti", args.rti), ("--relight", args.relight)):
         if val is not None and Path(val).exists() and not args.overwrite:
             ap.error(f"argument {opt}: {val} exists; pass --overwrite to replace it")
-    if args.exposure is not None and not args.exposure > 0:
-        ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
     if args.max_angle != "auto":
         try:
             max_angle = float(args.max_angle)
@@ -218,12 +245,7 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
             ap.error(f"argument --max-angle: expected 'auto' or a number of degrees, got {args.max_angle!r}")
         if not 0 < max_angle <= 90:
             ap.error(f"argument --max-angle: must be in (0, 90], got {args.max_angle}")
-    src = Path(args.result)
-    f = src / "result.npz" if src.is_dir() else src
-    try:
-        res = HSHResult.load(f)
-    except (OSError, ValueError) as err:
-        raise InputError(str(err)) from err
+    res = _load_result(args, ap)
     mask = res.mask.bool()
     n = res.normals.double()
     a = res.coefficients.double()
@@ -254,28 +276,20 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
 # --------------------------------------------------------------------------- #
 # view
 # --------------------------------------------------------------------------- #
+def _view_arguments(v) -> None:
+    _add_result(v)
+    v.add_argument("--out", required=True, help="output .html file (refused if it exists unless --overwrite)")
+    _add_exposure(v)
+
+
 def _run_view(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
-    from .cli import InputError
-    from .ps import HSHResult
     from .viewer import write_viewer
 
-    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
-    out = Path(os.path.abspath(args.out))
-    if out.suffix.lower() not in (".html", ".htm"):
-        ap.error(f"argument --out: expected an .html file name, got {out.name}")
-    if out.exists() and not args.overwrite:
-        ap.error(f"argument --out: {out} exists; pass --overwrite to replace it")
-    if not out.parent.is_dir():
-        ap.error(f"argument --out: the folder {out.parent} does not exist")
-    if args.exposure is not None and not args.exposure > 0:
-        ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
-    src = Path(args.result)
-    f = src / "result.npz" if src.is_dir() else src
-    try:
-        res = HSHResult.load(f)
-    except (OSError, ValueError) as err:
-        raise InputError(str(err)) from err
-    exposure = write_viewer(out, res, exposure=args.exposure, title=f"torch_hsh: {src.name}", overwrite=args.overwrite)
+    say = _say(args)
+    out = _out_file(ap, args.out, (".html", ".htm"), args.overwrite)
+    res = _load_result(args, ap)
+    exposure = write_viewer(out, res, exposure=args.exposure, title=f"torch_hsh: {Path(args.result).name}",
+                            overwrite=args.overwrite)
     size = out.stat().st_size
     say(f"wrote {out} ({size / 2 ** 20:.1f} MiB, exposure {exposure:.4g})")
     return {"exposure": exposure, "bytes": size}

@@ -83,7 +83,7 @@ from typing import Callable, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from ._checks import broadcast_shapes, check_dirs, check_order, check_same, check_tensor
+from ._checks import broadcast_shapes, check_dirs, check_order, check_same, check_shape, check_tensor
 from .kernel import hsh, iso_pair_gather
 from .bases.westin import _sh_gather, _sh_polar, complex_powers, real_sh
 from .render import brdf_cosine, order_from_num_coefficients
@@ -413,8 +413,9 @@ class EnvironmentMap:
 
     def __init__(self, data: torch.Tensor, rotation: float = 0.0) -> None:
         check_tensor(data, "data")
-        if data.dim() != 3 or data.shape[0] < 1 or data.shape[1] < 1 or data.shape[2] < 1:
-            raise ValueError(f"`data` must have shape (H, W, C) with H, W, C >= 1, got {tuple(data.shape)}")
+        check_shape(data, "data", ("H", "W", "C"))
+        if data.numel() == 0:
+            raise ValueError(f"`data` must have H, W, C >= 1, got shape {tuple(data.shape)}")
         if isinstance(rotation, torch.Tensor):
             rotation = float(rotation)
         if not isinstance(rotation, (int, float)) or not math.isfinite(rotation):
@@ -453,8 +454,7 @@ class EnvironmentMap:
         """
         H, W = _check_hw(height, width)
         check_tensor(coefficients, "coefficients")
-        if coefficients.dim() != 2:
-            raise ValueError(f"`coefficients` must have shape (C, (N+1)**2), got {tuple(coefficients.shape)}")
+        check_shape(coefficients, "coefficients", ("C", "(N+1)**2"))
         N = _sh_order(coefficients.shape[-1], "coefficients")
         d = equirect_directions(H, W, 0.0, coefficients.dtype, coefficients.device)
         return cls(real_sh(d, N) @ coefficients.T)
@@ -588,8 +588,7 @@ def sh_evaluate(coefficients: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     check_tensor(coefficients, "coefficients")
     check_dirs(dirs, "dirs")
     check_same([("coefficients", coefficients), ("dirs", dirs)])
-    if coefficients.dim() != 2:
-        raise ValueError(f"`coefficients` must have shape (C, (N+1)**2), got {tuple(coefficients.shape)}")
+    check_shape(coefficients, "coefficients", ("C", "(N+1)**2"))
     N = _sh_order(coefficients.shape[-1], "coefficients")
     return real_sh(dirs, N) @ coefficients.T
 

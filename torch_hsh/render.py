@@ -41,7 +41,7 @@ from typing import Callable, Optional, Union
 
 import torch
 
-from ._checks import check_dirs, check_order, check_same, check_tensor
+from ._checks import check_dirs, check_order, check_same, check_shape, check_tensor
 from .kernel import helmholtz_isotropic_world, num_isotropic
 from .frames import local_frame
 
@@ -98,8 +98,7 @@ order_from_num_coefficients = order_from_num_functions
 
 def _check_lights(lights: torch.Tensor, name: str = "lights") -> torch.Tensor:
     check_dirs(lights, name)
-    if lights.dim() != 2:
-        raise ValueError(f"`{name}` must have shape (L, 3), got {tuple(lights.shape)}")
+    check_shape(lights, name, ("L", 3))
     if lights.shape[0] < 1:
         raise ValueError(f"`{name}` must hold at least one light, got shape {tuple(lights.shape)}")
     return lights
@@ -110,13 +109,16 @@ def _intensities(intensities, L: int, C: int, like: torch.Tensor) -> torch.Tenso
     if intensities is None:
         return torch.ones(L, C, dtype=like.dtype, device=like.device)
     check_tensor(intensities, "intensities")
+    check_shape(intensities, "intensities", ("L",), ("L", 1), ("L", "C"), sizes={"L": L, "C": C})
     if intensities.dim() == 1:
         intensities = intensities.unsqueeze(-1)
-    if intensities.dim() != 2 or intensities.shape[0] != L or intensities.shape[1] not in (1, C):
-        raise ValueError(
-            f"`intensities` must have shape (L,) or (L, C) = ({L},) or ({L}, {C}), got {tuple(intensities.shape)}"
-        )
     return intensities.to(like.dtype).expand(L, C)
+
+
+def _lit(img: torch.Tensor, intensities) -> torch.Tensor:
+    """``(L, *S, C)`` images of unit-intensity lights times the light ``intensities`` (see :func:`_intensities`)."""
+    e = _intensities(intensities, img.shape[0], img.shape[-1], img)
+    return img * e.reshape(e.shape[0], *([1] * (img.dim() - 2)), e.shape[1])
 
 
 def shading_basis(
@@ -173,12 +175,8 @@ def render_coefficients(
 ) -> torch.Tensor:
     """Noise-free rendering of per-pixel isotropic Helmholtz coefficient maps.
 
-    Args:
-        normals: ``(*S, 3)``.
-        lights: ``(L, 3)``.
-        coefficients: ``(*S, C, K)``; the order is inferred from ``K``.
-        intensities: ``None``, ``(L,)`` or ``(L, C)``.
-        view: optional direction toward the camera (default ``(0, 0, 1)``).
+    :func:`render_model` with the BRDF given as ``coefficients``, ``(*S, C, K)`` (the order is inferred
+    from ``K``); ``normals``, ``lights``, ``intensities`` and ``view`` as there.
 
     Returns:
         ``(L, *S, C)`` radiance (not clamped: a fitted expansion may be negative).
@@ -190,10 +188,7 @@ def render_coefficients(
         tensor([0.3183, 0.3183, 0.3183])
     """
     check_tensor(coefficients, "coefficients", min_dims=2)
-    img = brdf_cosine(normals, lights, coefficients, view)
-    e = _intensities(intensities, lights.shape[0], coefficients.shape[-2], img)
-    S = normals.shape[:-1]
-    return img * e.reshape(e.shape[0], *([1] * len(S)), e.shape[1])
+    return _lit(brdf_cosine(normals, lights, coefficients, view), intensities)
 
 
 def _check_coefficient_maps(normals: torch.Tensor, coefficients: torch.Tensor) -> int:
@@ -242,7 +237,7 @@ def brdf_cosine(
         Phi = shading_basis(normals, dirs, order, view)  # (L, *S, K)
         return torch.einsum("l...k,...ck->l...c", Phi, brdf)
     if callable(brdf):
-        return render_model(normals, dirs, brdf, None, view)
+        return _model_cosine(normals, dirs, brdf, view)
     raise TypeError(
         f"`brdf` must be coefficient maps (a tensor of shape (*S, C, K)) or a callable f(wi, wo), "
         f"got {type(brdf).__name__}"
@@ -276,6 +271,11 @@ def render_model(
         >>> render_model(n, torch.tensor([[0.0, 0.0, 1.0]]), lam)[0, 0]
         tensor([0.3183, 0.3183, 0.3183])
     """
+    return _lit(_model_cosine(normals, lights, model, view), intensities)
+
+
+def _model_cosine(normals, lights, model, view) -> torch.Tensor:
+    """:func:`brdf_cosine` of a BRDF callable: ``(L, *S, C)``, zero below either horizon."""
     check_dirs(normals, "normals")
     _check_lights(lights)
     check_same([("normals", normals), ("lights", lights)])
@@ -295,9 +295,7 @@ def render_model(
         raise ValueError(f"`model(wi, wo)` must return shape (L, *S, C) = ({L}, {', '.join(map(str, S))}, C), got {got}")
     cos = wi[..., 2].clamp(min=0.0)
     up = (wo[..., 2] >= 0) & (wi[..., 2] > 0)
-    img = torch.where(up.unsqueeze(-1), f * cos.unsqueeze(-1), torch.zeros_like(f))
-    e = _intensities(intensities, L, img.shape[-1], img)
-    return img * e.reshape(L, *([1] * len(S)), e.shape[1])
+    return torch.where(up.unsqueeze(-1), f * cos.unsqueeze(-1), torch.zeros_like(f))
 
 
 def add_sensor_noise(

@@ -65,6 +65,8 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from ._checks import check_shape
+
 __all__ = [
     "SphereLights",
     "sphere_circle_from_mask",
@@ -127,8 +129,7 @@ def sphere_circle_from_mask(mask) -> Tuple[float, float, float]:
         [31.5, 31.5, 16.1]
     """
     m = mask.detach().cpu().numpy() if isinstance(mask, torch.Tensor) else np.asarray(mask)
-    if m.ndim != 2:
-        raise ValueError(f"the sphere mask must be 2-D (H, W), got shape {m.shape}")
+    check_shape(m, "mask", ("H", "W"))
     m = m.astype(bool)
     count = int(m.sum())
     if count < 12:
@@ -183,17 +184,17 @@ def sphere_light_directions(
         True
     """
     a = images.detach().cpu().double().numpy() if isinstance(images, torch.Tensor) else np.asarray(images, float)
+    sizes = check_shape(a, "images", ("L", "H", "W"), ("L", "H", "W", None))
     if a.ndim == 4:
         a = a.mean(axis=-1)
-    if a.ndim != 3 or a.shape[0] == 0:
-        raise ValueError(f"`images` must have shape (L, H, W[, C]) with L >= 1, got {a.shape}")
+    if a.shape[0] == 0:
+        raise ValueError("`images` must hold at least one image")
     L, H, W = a.shape
     if circle is None:
         if mask is None:
             raise ValueError("give the sphere as `circle=(cx, cy, r)` or `mask`")
         mm = mask.detach().cpu().numpy() if isinstance(mask, torch.Tensor) else np.asarray(mask)
-        if mm.shape != (H, W):
-            raise ValueError(f"the sphere mask has shape {mm.shape}, the images {(H, W)}")
+        check_shape(mm, "mask", ("H", "W"), sizes=sizes)
         circle = sphere_circle_from_mask(mm)
     cx, cy, r = (float(v) for v in circle)
     if not all(math.isfinite(v) for v in (cx, cy, r)) or r < 3:
@@ -476,8 +477,7 @@ def fit_rti(
     """
     terms = _check_terms(terms)
     L = images.shape[0]
-    if lights.shape != (L, 3):
-        raise ValueError(f"`lights` must have shape ({L}, 3), got {tuple(lights.shape)}")
+    check_shape(lights, "lights", ("L", 3), sizes={"L": L})
     if L < terms:
         raise ValueError(f"a {terms}-term RTI fit needs at least {terms} lights, got {L}")
     A = rti_hsh_basis(lights.double(), terms)  # (L, T)

@@ -21,7 +21,7 @@ from typing import Optional, Tuple, Union
 import torch
 import torch.nn.functional as F
 
-from ._checks import check_dirs, check_tensor
+from ._checks import check_count, check_dirs, check_shape, check_tensor
 
 __all__ = [
     "sphere_normals",
@@ -108,18 +108,6 @@ def _positive(x, name: str) -> float:
     return float(x)
 
 
-def _count(n, name: str, minimum: int = 1) -> int:
-    if isinstance(n, bool):
-        raise TypeError(f"`{name}` must be an integer, got {n!r}")
-    try:
-        n = operator.index(n)
-    except TypeError:
-        raise TypeError(f"`{name}` must be an integer, got {n!r} ({type(n).__name__})") from None
-    if n < minimum:
-        raise ValueError(f"`{name}` must be >= {minimum}, got {n}")
-    return n
-
-
 def _pixel_grid(h: int, w: int, dtype, device):
     rows = torch.arange(h, dtype=dtype, device=device)[:, None].expand(h, w)
     cols = torch.arange(w, dtype=dtype, device=device)[None, :].expand(h, w)
@@ -192,7 +180,7 @@ def bumpy_heightfield(
         (torch.Size([64, 64]), torch.Size([64, 64, 3]))
     """
     h, w = _size(size)
-    n_bumps = _count(n_bumps, "n_bumps", minimum=0)
+    n_bumps = check_count(n_bumps, "n_bumps", minimum=0)
     smoothness = _positive(smoothness, "smoothness")
     dtype = _dtype(dtype)
     g = _gen(seed)
@@ -291,7 +279,7 @@ def material_regions(
         (torch.Size([32, 32]), [0, 1, 2, 3])
     """
     h, w = _size(size)
-    n_regions = _count(n_regions, "n_regions")
+    n_regions = check_count(n_regions, "n_regions", minimum=1)
     if n_regions > h * w:
         raise ValueError(f"`n_regions` must be <= H * W = {h * w}, got {n_regions}")
     if isinstance(warp, bool) or not isinstance(warp, (int, float)) or not math.isfinite(warp) or warp < 0:
@@ -416,7 +404,7 @@ def diligent_like_lights(
         >>> L.shape, bool((L[:, 2] > 0).all())
         (torch.Size([96, 3]), True)
     """
-    n = _count(n, "n")
+    n = check_count(n, "n", minimum=1)
     max_polar = _positive(max_polar_deg, "max_polar_deg")
     if max_polar >= 90:
         raise ValueError(f"`max_polar_deg` must be < 90, got {max_polar}")
@@ -461,7 +449,7 @@ def cone_lights(
         >>> bool((L[:, 2] >= math.cos(math.radians(30.0)) - 1e-6).all())
         True
     """
-    n = _count(n, "n")
+    n = check_count(n, "n", minimum=1)
     ang = _positive(max_angle_deg, "max_angle_deg")
     if ang > 180:
         raise ValueError(f"`max_angle_deg` must be in (0, 180], got {ang}")
@@ -495,7 +483,7 @@ def light_intensities(
         >>> I.shape, bool(((I >= 0.8) & (I <= 1.2)).all())
         (torch.Size([96, 3]), True)
     """
-    n = _count(n, "n")
+    n = check_count(n, "n", minimum=1)
     if isinstance(variation, bool) or not isinstance(variation, (int, float)) or not 0 <= variation < 1:
         raise ValueError(f"`variation` must be a number in [0, 1), got {variation!r}")
     dtype = _dtype(dtype)
@@ -555,14 +543,12 @@ def cast_shadow_mask(
         (False, True, True)
     """
     check_tensor(height, "height")
-    if height.dim() != 2:
-        raise ValueError(f"`height` must have shape (H, W), got {tuple(height.shape)}")
+    check_shape(height, "height", ("H", "W"))
     check_dirs(lights, "lights")
-    if lights.dim() != 2:
-        raise ValueError(f"`lights` must have shape (L, 3), got {tuple(lights.shape)}")
+    check_shape(lights, "lights", ("L", 3))
     ps = _positive(pixel_size, "pixel_size")
     if n_steps is not None:
-        n_steps = _count(n_steps, "n_steps", minimum=0)
+        n_steps = check_count(n_steps, "n_steps", minimum=0)
     if isinstance(bias, bool) or not isinstance(bias, (int, float)) or not math.isfinite(bias) or bias < 0:
         raise ValueError(f"`bias` must be a finite number >= 0, got {bias!r}")
     H, W = height.shape
@@ -726,7 +712,7 @@ def demo_scene(
     h, w = _size(size)
     if min(h, w) < 8:
         raise ValueError(f"`size` must be at least 8 x 8, got {(h, w)}")
-    n_lights = _count(n_lights, "n_lights", minimum=3)
+    n_lights = check_count(n_lights, "n_lights", minimum=3)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise TypeError(f"`seed` must be an int, got {seed!r}")
     dtype = _dtype(dtype)
@@ -735,7 +721,7 @@ def demo_scene(
     for name, val in (("read_noise", read_noise), ("shot_noise", shot_noise)):
         if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val) or val < 0:
             raise ValueError(f"`{name}` must be a finite number >= 0, got {val!r}")
-    bits = _count(bits, "bits")
+    bits = check_count(bits, "bits", minimum=1)
     if bits > 32:
         raise ValueError(f"`bits` must be in [1, 32], got {bits}")
 

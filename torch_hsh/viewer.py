@@ -38,6 +38,8 @@ from typing import List, Optional
 import numpy as np
 import torch
 
+from ._checks import check_shape
+
 __all__ = ["glsl_isotropic_basis", "write_viewer", "default_exposure", "MODES"]
 
 MODES = ("relit", "normals", "albedo", "confidence", "error")
@@ -175,12 +177,11 @@ def write_viewer(path, result, exposure: Optional[float] = None, title: str = "t
     if p.exists() and not overwrite:
         raise FileExistsError(f"{p} exists; pass overwrite=True to replace it")
     n = result.normals.detach().cpu().double()
-    if n.dim() != 3:
-        raise ValueError(f"the viewer needs an (H, W) result, got normals of shape {tuple(n.shape)}")
     a = result.coefficients.detach().cpu().double()
+    # the viewer shows an (H, W) image of an RGB result
+    sizes = check_shape(n, "result.normals", ("H", "W", 3))
+    check_shape(a, "result.coefficients", ("H", "W", 3, "K"), sizes=sizes)
     H, W, C, K = a.shape
-    if C != 3:
-        raise ValueError(f"the viewer shows RGB results, got {C} channels")
     from .render import order_from_num_functions
 
     order = order_from_num_functions(K)

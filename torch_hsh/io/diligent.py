@@ -46,7 +46,6 @@ file is most likely a preview or a different benchmark).
 """
 from __future__ import annotations
 
-import operator
 import struct
 import warnings
 from dataclasses import dataclass
@@ -55,6 +54,8 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
+
+from .._checks import check_count, check_shape
 
 __all__ = ["PhotometricDataset", "load_diligent", "save_diligent"]
 
@@ -290,20 +291,6 @@ class PhotometricDataset:
         )
 
 
-def _check_count(value, name: str, allow_none: bool = False) -> Optional[int]:
-    if value is None and allow_none:
-        return None
-    if isinstance(value, bool):
-        raise TypeError(f"`{name}` must be a non-negative integer, got {value!r}")
-    try:
-        value = operator.index(value)
-    except TypeError:
-        raise TypeError(f"`{name}` must be a non-negative integer, got {value!r} ({type(value).__name__})") from None
-    if value < 0:
-        raise ValueError(f"`{name}` must be >= 0, got {value}")
-    return value
-
-
 def load_diligent(
     path,
     dtype: torch.dtype = torch.float32,
@@ -361,14 +348,48 @@ def load_diligent(
     """
     if dtype not in _FLOAT_DTYPES:
         raise TypeError(f"`dtype` must be torch.float32 or torch.float64, got {dtype}")
-    drop_first = int(_check_count(drop_first, "drop_first") or 0)
-    max_images = _check_count(max_images, "max_images", allow_none=True)
+    drop_first = check_count(drop_first, "drop_first")
+    max_images = None if max_images is None else check_count(max_images, "max_images")
     folder = Path(path)
     if not folder.is_dir():
         raise FileNotFoundError(f"DiLiGenT folder not found: {folder}")
     ldir_file = folder / "light_directions.txt"
+    lights = _read_light_directions(ldir_file)
+    n = lights.shape[0]
+    intens = _read_light_intensities(folder, n)
+    names = _read_image_names(folder, n)
+
+    sel = slice(drop_first, None if max_images is None else drop_first + max_images)
+    names, lights, intens = names[sel], lights[sel], intens[sel]
+    if len(names) == 0:
+        raise ValueError(f"{folder}: no images left after drop_first={drop_first}, max_images={max_images}")
+    _check_light_geometry(lights, ldir_file, first_row=drop_first + 1, check_rank=check_lights)
+
+    images = _read_images(folder, names, drop_first, np.float32 if dtype == torch.float32 else np.float64)
+    if normalize_intensities:
+        images /= intens[:, None, None, :].astype(images.dtype)
+    mask = _read_foreground_mask(folder, images.shape[1:3])
+    normals = _read_ground_truth(folder / "Normal_gt.mat", mask)
+
+    def t(a):
+        return torch.as_tensor(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
+
+    return PhotometricDataset(
+        images=t(images),
+        lights=t(lights),
+        intensities=t(intens),
+        mask=torch.as_tensor(mask).to(device=device),
+        normals_gt=None if normals is None else t(normals),
+        names=list(names),
+        path=folder,
+    )
+
+
+# The steps of load_diligent, in its order. A warning names the caller of load_diligent (stacklevel 3).
+def _read_light_directions(ldir_file: Path) -> np.ndarray:
+    """``light_directions.txt``: (N, 3) rows of unit length (within UNIT_TOLERANCE), re-normalised."""
     if not ldir_file.is_file():
-        raise FileNotFoundError(f"{folder}: missing light_directions.txt (N x 3 unit light directions)")
+        raise FileNotFoundError(f"{ldir_file.parent}: missing light_directions.txt (N x 3 unit light directions)")
     lights = _read_rows(ldir_file, "light direction")
     norms = np.linalg.norm(lights, axis=1)
     bad = np.nonzero(np.abs(norms - 1.0) > UNIT_TOLERANCE)[0]
@@ -377,23 +398,28 @@ def load_diligent(
             f"{ldir_file}: light direction row {int(bad[0]) + 1} has length {norms[bad[0]]:.6g}; "
             f"expected unit vectors (|len - 1| <= {UNIT_TOLERANCE}); {bad.size} bad row(s)"
         )
-    lights = lights / norms[:, None]
-    n = lights.shape[0]
+    return lights / norms[:, None]
 
+
+def _read_light_intensities(folder: Path, n: int) -> np.ndarray:
+    """``light_intensities.txt``: (n, 3) positive rows; ones (with a warning) when the file is missing."""
     int_file = folder / "light_intensities.txt"
-    if int_file.is_file():
-        intens = _read_rows(int_file, "light intensity")
-        if intens.shape[0] != n:
-            raise ValueError(
-                f"{folder}: light_intensities.txt has {intens.shape[0]} rows but light_directions.txt has {n}"
-            )
-        if (intens <= 0).any():
-            row = int(np.nonzero((intens <= 0).any(axis=1))[0][0]) + 1
-            raise ValueError(f"{int_file} row {row}: light intensities must be > 0")
-    else:
-        warnings.warn(f"{folder}: no light_intensities.txt; assuming unit intensities", UserWarning, stacklevel=2)
-        intens = np.ones((n, 3))
+    if not int_file.is_file():
+        warnings.warn(f"{folder}: no light_intensities.txt; assuming unit intensities", UserWarning, stacklevel=3)
+        return np.ones((n, 3))
+    intens = _read_rows(int_file, "light intensity")
+    if intens.shape[0] != n:
+        raise ValueError(
+            f"{folder}: light_intensities.txt has {intens.shape[0]} rows but light_directions.txt has {n}"
+        )
+    if (intens <= 0).any():
+        row = int(np.nonzero((intens <= 0).any(axis=1))[0][0]) + 1
+        raise ValueError(f"{int_file} row {row}: light intensities must be > 0")
+    return intens
 
+
+def _read_image_names(folder: Path, n: int) -> List[str]:
+    """The ``n`` image names: ``filenames.txt``, else the folder's ``*.png`` pictures sorted by name."""
     names_file = folder / "filenames.txt"
     if names_file.is_file():
         names = _read_names(names_file)
@@ -403,13 +429,11 @@ def load_diligent(
         source = "*.png files"
     if len(names) != n:
         raise ValueError(f"{folder}: {len(names)} image names ({source}) but {n} light directions")
+    return names
 
-    sel = slice(drop_first, None if max_images is None else drop_first + max_images)
-    names, lights, intens = names[sel], lights[sel], intens[sel]
-    if len(names) == 0:
-        raise ValueError(f"{folder}: no images left after drop_first={drop_first}, max_images={max_images}")
-    _check_light_geometry(lights, ldir_file, first_row=drop_first + 1, check_rank=check_lights)
 
+def _read_images(folder: Path, names: Sequence[str], drop_first: int, dtype) -> np.ndarray:
+    """The (L, H, W, 3) images of ``names`` as linear values in [0, 1] (all of one size and bit depth)."""
     images: Optional[np.ndarray] = None
     depth0 = None
     for i, name in enumerate(names):
@@ -429,61 +453,53 @@ def load_diligent(
                     f"{folder}: 8-bit images (expected 16-bit linear PNGs); values are divided by 255 "
                     "and not linearised",
                     UserWarning,
-                    stacklevel=2,
+                    stacklevel=3,
                 )
-            images = np.empty((len(names),) + img.shape, dtype=np.float32 if dtype == torch.float32 else np.float64)
+            images = np.empty((len(names),) + img.shape, dtype=dtype)
         elif img.shape != images.shape[1:]:
             raise ValueError(f"{f}: image size {img.shape[:2]} differs from the first image's {images.shape[1:3]}")
         elif depth != depth0:
             raise ValueError(f"{f}: bit depth {depth} differs from the first image's {depth0}")
         images[i] = img
-    assert images is not None  # at least one name (checked above)
+    assert images is not None  # at least one name (checked by the caller)
     images /= 65535.0 if depth0 == 16 else 255.0
-    if normalize_intensities:
-        images /= intens[:, None, None, :].astype(images.dtype)
-    height, width = images.shape[1:3]
+    return images
 
+
+def _read_foreground_mask(folder: Path, shape) -> np.ndarray:
+    """``mask.png`` (> 0 inside) of the image ``shape`` (H, W); all True (with a warning) when missing."""
+    height, width = shape
     mask_file = folder / "mask.png"
-    if mask_file.is_file():
-        m = _read_png(mask_file)
-        if m.ndim == 3:
-            m = m[..., :3].max(axis=-1) if m.shape[2] in (3, 4) else m[..., 0]
-        if m.shape != (height, width):
-            raise ValueError(f"{mask_file}: mask size {m.shape} differs from the image size {(height, width)}")
-        mask = m > 0
-    else:
-        warnings.warn(f"{folder}: no mask.png; every pixel is treated as valid", UserWarning, stacklevel=2)
-        mask = np.ones((height, width), dtype=bool)
+    if not mask_file.is_file():
+        warnings.warn(f"{folder}: no mask.png; every pixel is treated as valid", UserWarning, stacklevel=3)
+        return np.ones((height, width), dtype=bool)
+    m = _read_png(mask_file)
+    if m.ndim == 3:
+        m = m[..., :3].max(axis=-1) if m.shape[2] in (3, 4) else m[..., 0]
+    if m.shape != (height, width):
+        raise ValueError(f"{mask_file}: mask size {m.shape} differs from the image size {(height, width)}")
+    return m > 0
 
-    normals = None
-    ngt_file = folder / "Normal_gt.mat"
-    if ngt_file.is_file():
-        normals = _read_normal_gt(ngt_file)
-        if normals.shape != (height, width, 3):
-            raise ValueError(f"{ngt_file}: Normal_gt has shape {normals.shape}, expected {(height, width, 3)}")
-        bad = ~np.isfinite(normals).all(axis=-1)
-        if bad.any():  # outside the mask too: the error maps and metrics use the whole array
-            raise ValueError(f"{ngt_file}: Normal_gt has NaN or Inf values at {int(bad.sum())} pixels "
-                             f"({int((bad & mask).sum())} inside the mask)")
-        inside = normals[mask]
-        off = np.abs(np.linalg.norm(inside, axis=-1) - 1.0) > _UNIT_TOL
-        if off.any():
-            raise ValueError(f"{ngt_file}: Normal_gt is not a unit normal at {int(off.sum())} of the {len(off)} "
-                             f"pixels inside the mask (|n| - 1 up to "
-                             f"{float(np.abs(np.linalg.norm(inside, axis=-1) - 1.0).max()):.3g})")
 
-    def t(a):
-        return torch.as_tensor(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
-
-    return PhotometricDataset(
-        images=t(images),
-        lights=t(lights),
-        intensities=t(intens),
-        mask=torch.as_tensor(mask).to(device=device),
-        normals_gt=None if normals is None else t(normals),
-        names=list(names),
-        path=folder,
-    )
+def _read_ground_truth(ngt_file: Path, mask: np.ndarray) -> Optional[np.ndarray]:
+    """``Normal_gt.mat``: (H, W, 3) finite normals, of unit length inside ``mask``; None when missing."""
+    if not ngt_file.is_file():
+        return None
+    height, width = mask.shape
+    normals = _read_normal_gt(ngt_file)
+    if normals.shape != (height, width, 3):
+        raise ValueError(f"{ngt_file}: Normal_gt has shape {normals.shape}, expected {(height, width, 3)}")
+    bad = ~np.isfinite(normals).all(axis=-1)
+    if bad.any():  # outside the mask too: the error maps and metrics use the whole array
+        raise ValueError(f"{ngt_file}: Normal_gt has NaN or Inf values at {int(bad.sum())} pixels "
+                         f"({int((bad & mask).sum())} inside the mask)")
+    inside = normals[mask]
+    off = np.abs(np.linalg.norm(inside, axis=-1) - 1.0) > _UNIT_TOL
+    if off.any():
+        raise ValueError(f"{ngt_file}: Normal_gt is not a unit normal at {int(off.sum())} of the {len(off)} "
+                         f"pixels inside the mask (|n| - 1 up to "
+                         f"{float(np.abs(np.linalg.norm(inside, axis=-1) - 1.0).max()):.3g})")
+    return normals
 
 
 #: Largest | |n| - 1 | accepted in ``Normal_gt.mat`` inside the mask (DiLiGenT's files: 1.4e-7).
@@ -609,86 +625,18 @@ def save_diligent(
         >>> load_diligent(out).images.sub(imgs).abs().max() < 1e-4  # doctest: +SKIP
         tensor(True)
     """
-    images = _to_numpy(images, "images").astype(np.float64)
-    lights = _to_numpy(lights, "lights").astype(np.float64)
-    if images.ndim != 4 or images.shape[-1] != 3:
-        raise ValueError(f"`images` must have shape (L, H, W, 3), got {images.shape}")
-    n, height, width, _ = images.shape
-    if n == 0:
-        raise ValueError("`images` must contain at least one image")
-    if lights.shape != (n, 3):
-        raise ValueError(f"`lights` must have shape ({n}, 3) to match `images`, got {lights.shape}")
-    if not np.isfinite(images).all():
-        raise ValueError("`images` contains NaN or Inf values")
-    if not np.isfinite(lights).all():
-        raise ValueError("`lights` contains NaN or Inf values")
-    norms = np.linalg.norm(lights, axis=1)
-    if (norms < 1e-12).any():
-        raise ValueError(f"`lights` row {int(np.argmin(norms))} is a zero vector")
-    lights = lights / norms[:, None]
-    _check_light_geometry(lights, "`lights`", first_row=1, check_rank=False)
-    if intensities is None:
-        intensities = np.ones((n, 3))
-    else:
-        intensities = _to_numpy(intensities, "intensities").astype(np.float64)
-        if intensities.shape != (n, 3):
-            raise ValueError(f"`intensities` must have shape ({n}, 3), got {intensities.shape}")
-        if not np.isfinite(intensities).all() or (intensities <= 0).any():
-            raise ValueError("`intensities` must be finite and > 0")
-    if mask is None:
-        mask = np.ones((height, width), dtype=bool)
-    else:
-        mask = _to_numpy(mask, "mask")
-        if mask.shape != (height, width):
-            raise ValueError(f"`mask` must have shape ({height}, {width}), got {mask.shape}")
-        mask = mask.astype(bool)
-    if normals_gt is not None:
-        normals_gt = _to_numpy(normals_gt, "normals_gt").astype(np.float64)
-        if normals_gt.shape != (height, width, 3):
-            raise ValueError(f"`normals_gt` must have shape ({height}, {width}, 3), got {normals_gt.shape}")
+    images, lights, intensities, mask, normals_gt = _check_stack(images, lights, intensities, mask, normals_gt)
     if bit_depth not in (8, 16):
         raise ValueError(f"`bit_depth` must be 8 or 16, got {bit_depth!r}")
-    if names is None:
-        digits = max(3, len(str(n)))
-        names = [f"{i + 1:0{digits}d}.png" for i in range(n)]
-    else:
-        names = [str(s) for s in names]
-        if len(names) != n or len(set(names)) != n:
-            raise ValueError(f"`names` must hold {n} distinct file names, got {len(names)}")
-        if any(not s.lower().endswith(".png") or "/" in s or _is_aux_picture(s) for s in names):
-            raise ValueError("`names` must be plain '*.png' file names not starting with 'mask'/'normal'")
+    names = _file_names(names, images.shape[0])
+    codes, scale = _to_codes(images * intensities[:, None, None, :], scale, bit_depth)
 
-    raw = images * intensities[:, None, None, :]
-    if scale is None:
-        peak = float(raw.max())
-        scale = 1.0 / peak if peak > 0 else 1.0
-    else:
-        scale = float(scale)
-        if not np.isfinite(scale) or scale <= 0:
-            raise ValueError(f"`scale` must be a positive finite number, got {scale}")
-    max_code = (1 << bit_depth) - 1
-    scaled = raw * scale
-    if (scaled > 1.0 + 1e-9).any():
-        warnings.warn(
-            f"{int((scaled > 1.0 + 1e-9).sum())} values exceed the {bit_depth}-bit range after scaling; clipped",
-            UserWarning,
-            stacklevel=2,
-        )
-    if (scaled < 0).any():
-        warnings.warn(f"{int((scaled < 0).sum())} negative image values clipped to 0", UserWarning, stacklevel=2)
-    codes = np.rint(np.clip(scaled, 0.0, 1.0) * max_code).astype(np.uint16 if bit_depth == 16 else np.uint8)
-
-    folder = Path(path)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"`path` {folder} exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
+    folder = _output_folder(path, overwrite)
     if normals_gt is None and (folder / "Normal_gt.mat").exists():
         # it would be read back as the ground truth of these images, and it is not ours to delete
         raise FileExistsError(
             f"{folder / 'Normal_gt.mat'} exists and this call writes no normals_gt; remove it or pass normals_gt"
         )
-    folder.mkdir(parents=True, exist_ok=True)
 
     def write_checked(f: Path, data: np.ndarray) -> None:
         _write_png(f, data)
@@ -706,4 +654,91 @@ def save_diligent(
         import scipy.io
 
         scipy.io.savemat(str(folder / "Normal_gt.mat"), {"Normal_gt": normals_gt})
+    return folder
+
+
+# The steps of save_diligent, in its order. A warning names the caller of save_diligent (stacklevel 3).
+def _check_stack(images, lights, intensities, mask, normals_gt):
+    """The arrays of :func:`save_diligent` as float64 / bool numpy arrays of matching shapes, lights
+    normalised; ``intensities`` and ``mask`` default to ones / all True."""
+    images = _to_numpy(images, "images").astype(np.float64)
+    lights = _to_numpy(lights, "lights").astype(np.float64)
+    sizes = check_shape(images, "images", ("L", "H", "W", 3))
+    n, height, width, _ = images.shape
+    if n == 0:
+        raise ValueError("`images` must contain at least one image")
+    check_shape(lights, "lights", ("L", 3), sizes=sizes)
+    if not np.isfinite(images).all():
+        raise ValueError("`images` contains NaN or Inf values")
+    if not np.isfinite(lights).all():
+        raise ValueError("`lights` contains NaN or Inf values")
+    norms = np.linalg.norm(lights, axis=1)
+    if (norms < 1e-12).any():
+        raise ValueError(f"`lights` row {int(np.argmin(norms))} is a zero vector")
+    lights = lights / norms[:, None]
+    _check_light_geometry(lights, "`lights`", first_row=1, check_rank=False)
+    if intensities is None:
+        intensities = np.ones((n, 3))
+    else:
+        intensities = _to_numpy(intensities, "intensities").astype(np.float64)
+        check_shape(intensities, "intensities", ("L", 3), sizes=sizes)
+        if not np.isfinite(intensities).all() or (intensities <= 0).any():
+            raise ValueError("`intensities` must be finite and > 0")
+    if mask is None:
+        mask = np.ones((height, width), dtype=bool)
+    else:
+        mask = _to_numpy(mask, "mask")
+        check_shape(mask, "mask", ("H", "W"), sizes=sizes)
+        mask = mask.astype(bool)
+    if normals_gt is not None:
+        normals_gt = _to_numpy(normals_gt, "normals_gt").astype(np.float64)
+        check_shape(normals_gt, "normals_gt", ("H", "W", 3), sizes=sizes)
+    return images, lights, intensities, mask, normals_gt
+
+
+def _file_names(names: Optional[Sequence[str]], n: int) -> List[str]:
+    """``n`` distinct plain ``*.png`` names; default ``001.png``, ... (zero padded to at least 3 digits)."""
+    if names is None:
+        digits = max(3, len(str(n)))
+        return [f"{i + 1:0{digits}d}.png" for i in range(n)]
+    names = [str(s) for s in names]
+    if len(names) != n or len(set(names)) != n:
+        raise ValueError(f"`names` must hold {n} distinct file names, got {len(names)}")
+    if any(not s.lower().endswith(".png") or "/" in s or _is_aux_picture(s) for s in names):
+        raise ValueError("`names` must be plain '*.png' file names not starting with 'mask'/'normal'")
+    return names
+
+
+def _to_codes(raw: np.ndarray, scale: Optional[float], bit_depth: int):
+    """``(codes, scale)``: ``raw * scale`` clipped to [0, 1] (with warnings) and rounded to ``bit_depth``-bit
+    codes; ``scale`` defaults to ``1 / max(raw)``."""
+    if scale is None:
+        peak = float(raw.max())
+        scale = 1.0 / peak if peak > 0 else 1.0
+    else:
+        scale = float(scale)
+        if not np.isfinite(scale) or scale <= 0:
+            raise ValueError(f"`scale` must be a positive finite number, got {scale}")
+    max_code = (1 << bit_depth) - 1
+    scaled = raw * scale
+    if (scaled > 1.0 + 1e-9).any():
+        warnings.warn(
+            f"{int((scaled > 1.0 + 1e-9).sum())} values exceed the {bit_depth}-bit range after scaling; clipped",
+            UserWarning,
+            stacklevel=3,
+        )
+    if (scaled < 0).any():
+        warnings.warn(f"{int((scaled < 0).sum())} negative image values clipped to 0", UserWarning, stacklevel=3)
+    codes = np.rint(np.clip(scaled, 0.0, 1.0) * max_code).astype(np.uint16 if bit_depth == 16 else np.uint8)
+    return codes, scale
+
+
+def _output_folder(path, overwrite: bool) -> Path:
+    """Create the output folder ``path``; an existing non-empty one only with ``overwrite``."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"`path` {folder} exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
+    folder.mkdir(parents=True, exist_ok=True)
     return folder

@@ -27,6 +27,8 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from .._checks import check_shape
+
 __all__ = [
     "read_exr",
     "write_exr",
@@ -212,8 +214,9 @@ def write_image_stack_exr(path, images, overwrite: bool = False, half: bool = Fa
         >>> write_image_stack_exr(tmp_path / "s.exr", torch.rand(5, 8, 8, 3))  # doctest: +SKIP
     """
     arr = _as_array(images, "images")
-    if arr.ndim not in (3, 4) or (arr.ndim == 4 and arr.shape[-1] not in (1, 3, 4)) or arr.shape[0] == 0:
-        raise ValueError(f"`images` must have shape (L, H, W), (L, H, W, 1|3|4) with L > 0, got {arr.shape}")
+    check_shape(arr, "images", ("L", "H", "W"), *[("L", "H", "W", c) for c in (1, 3, 4)])
+    if arr.shape[0] == 0:
+        raise ValueError("`images` must hold at least one image")
     if arr.ndim == 4 and arr.shape[-1] == 1:
         arr = arr[..., 0]
     width = max(3, len(str(arr.shape[0] - 1)))
@@ -253,13 +256,11 @@ def write_normal_map_exr(path, normals, mask=None, overwrite: bool = False) -> P
         (32, 32)
     """
     n = _as_array(normals, "normals").astype(np.float32)
-    if n.ndim != 3 or n.shape[-1] != 3:
-        raise ValueError(f"`normals` must have shape (H, W, 3), got {n.shape}")
+    sizes = check_shape(n, "normals", ("H", "W", 3))
     chans = {"normal": n}
     if mask is not None:
         m = _as_array(mask, "mask").astype(bool)
-        if m.shape != n.shape[:2]:
-            raise ValueError(f"`mask` must have shape {n.shape[:2]}, got {m.shape}")
+        check_shape(m, "mask", ("H", "W"), sizes=sizes)
         n = np.where(m[..., None], n, 0.0).astype(np.float32)
         chans = {"normal": n, "mask": m.astype(np.float32)}
     return write_exr(path, chans, overwrite=overwrite)
@@ -296,10 +297,11 @@ def write_coefficient_maps_exr(
         True
     """
     a = _as_array(coeffs, "coeffs").astype(np.float32)
+    check_shape(a, "coeffs", ("H", "W", "C", "K"), ("H", "W", "K"))
     if a.ndim == 3:
         a = a[:, :, None, :]
-    if a.ndim != 4 or 0 in a.shape:
-        raise ValueError(f"`coeffs` must have shape (H, W, C, K) or (H, W, K), non-empty, got {a.shape}")
+    if 0 in a.shape:
+        raise ValueError(f"`coeffs` must be non-empty, got shape {a.shape}")
     _, _, c, k = a.shape
     if names is None:
         names = [f"c{i:04d}" for i in range(k)]

@@ -76,12 +76,13 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
-from .diligent import PhotometricDataset, _read_png, _read_text, _to_numpy, _write_png
+from .._checks import check_shape
+from .diligent import PhotometricDataset, _output_folder, _read_png, _read_text, _to_numpy, _write_png
 
 __all__ = [
     "read_lp",
@@ -233,8 +234,7 @@ def write_lp(path, names: Sequence[str], lights, overwrite: bool = False) -> Pat
     """
     p = Path(path)
     li = np.asarray(lights.detach().cpu().numpy() if isinstance(lights, torch.Tensor) else lights, dtype=np.float64)
-    if li.ndim != 2 or li.shape[1] != 3 or li.shape[0] != len(names):
-        raise ValueError(f"`lights` must have shape ({len(names)}, 3), got {li.shape}")
+    check_shape(li, "lights", ("N", 3), sizes={"N": len(names)})
     norms = np.linalg.norm(li, axis=1)
     if not np.isfinite(li).all() or (norms < MIN_LIGHT_NORM).any():
         raise ValueError("`lights` must be finite non-zero vectors")
@@ -334,6 +334,39 @@ def read_image(path) -> Tuple[np.ndarray, int]:
     return a[..., :3].astype(np.float64) / float((1 << bits) - 1), bits
 
 
+def _read_photographs(paths: Sequence[Path], missing: Callable[[int, Path], str],
+                      convert: Optional[Callable[[np.ndarray], np.ndarray]] = None, dtype=np.float64) -> np.ndarray:
+    """The stack of the photographs ``paths`` (:func:`read_image`), each passed through ``convert``.
+
+    Every photograph must have the first one's size and bit depth (``ValueError`` naming the odd one);
+    a missing one raises ``FileNotFoundError`` with the message ``missing(index, path)``.
+
+    Returns:
+        ``(N, *convert(image).shape)`` array of ``dtype`` (``(N, H, W, 3)`` without ``convert``).
+    """
+    images: Optional[np.ndarray] = None
+    bits0 = None
+    shape0 = None
+    for i, f in enumerate(paths):
+        if not f.is_file():
+            raise FileNotFoundError(missing(i, f))
+        img, bits = read_image(f)
+        if shape0 is None:
+            shape0, bits0 = img.shape, bits
+        elif img.shape != shape0:
+            raise ValueError(f"{f}: image size {img.shape[1]}x{img.shape[0]} (WxH) differs from the first image's "
+                             f"{shape0[1]}x{shape0[0]} ({paths[0].name})")
+        elif bits != bits0:
+            raise ValueError(f"{f}: bit depth {bits} differs from the first image's {bits0}")
+        img = img if convert is None else convert(img)
+        if images is None:
+            images = np.empty((len(paths),) + img.shape, dtype=dtype)
+        images[i] = img
+    if images is None:
+        raise ValueError("no photographs to read")
+    return images
+
+
 def _read_mask(path: Path, shape) -> np.ndarray:
     if path.suffix.lower() == ".png":
         m = _read_png(path)
@@ -411,22 +444,9 @@ def load_rti(
     if not names:
         raise ValueError(f"{lp_path}: no images left after drop_first={drop_first}, max_images={max_images}")
     _check_light_geometry(lights, lp_path, first_row=int(drop_first) + 1, check_rank=check_lights)
-    images: Optional[np.ndarray] = None
-    bits0 = None
-    for i, f in enumerate(paths):
-        if not f.is_file():
-            raise FileNotFoundError(f"{lp_path}: image {names[i]!r} (number {i + 1 + int(drop_first)}) not found: {f}")
-        img, bits = read_image(f)
-        if images is None:
-            bits0 = bits
-            images = np.empty((len(paths),) + img.shape, dtype=np.float32 if dtype == torch.float32 else np.float64)
-        elif img.shape != images.shape[1:]:
-            raise ValueError(f"{f}: image size {img.shape[1]}x{img.shape[0]} (WxH) differs from the first image's "
-                             f"{images.shape[2]}x{images.shape[1]} ({paths[0].name})")
-        elif bits != bits0:
-            raise ValueError(f"{f}: bit depth {bits} differs from the first image's {bits0}")
-        images[i] = img if linear else srgb_decode(img)
-    assert images is not None
+    images = _read_photographs(
+        paths, lambda i, f: f"{lp_path}: image {names[i]!r} (number {i + 1 + int(drop_first)}) not found: {f}",
+        convert=None if linear else srgb_decode, dtype=np.float32 if dtype == torch.float32 else np.float64)
     shape = images.shape[1:3]
     if mask is not None:
         mpath = Path(mask)
@@ -446,17 +466,6 @@ def load_rti(
                               mask=torch.as_tensor(m).to(device=device), normals_gt=None, names=list(names),
                               path=folder)
 
-
-
-def _output_folder(path, overwrite: bool) -> Path:
-    """Create the output folder ``path``; an existing non-empty one only with ``overwrite``."""
-    folder = Path(path)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"`path` {folder} exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to write into it")
-    folder.mkdir(parents=True, exist_ok=True)
-    return folder
 
 def save_rti(
     path,
@@ -504,11 +513,11 @@ def save_rti(
 
     imgs = _to_numpy(images, "images").astype(np.float64)
     li = _to_numpy(lights, "lights").astype(np.float64)
-    if imgs.ndim != 4 or imgs.shape[-1] != 3 or imgs.shape[0] == 0:
-        raise ValueError(f"`images` must have shape (L, H, W, 3) with L >= 1, got {imgs.shape}")
+    sizes = check_shape(imgs, "images", ("L", "H", "W", 3))
     n = imgs.shape[0]
-    if li.shape != (n, 3):
-        raise ValueError(f"`lights` must have shape ({n}, 3), got {li.shape}")
+    if n == 0:
+        raise ValueError("`images` must hold at least one image")
+    check_shape(li, "lights", ("L", 3), sizes=sizes)
     if not np.isfinite(imgs).all():
         raise ValueError("`images` contains NaN or Inf values")
     fmt = fmt.lower().lstrip(".")
@@ -539,8 +548,7 @@ def save_rti(
             Image.fromarray(c).save(f)
     if mask is not None:
         m = _to_numpy(mask, "mask").astype(bool)
-        if m.shape != imgs.shape[1:3]:
-            raise ValueError(f"`mask` must have shape {imgs.shape[1:3]}, got {m.shape}")
+        check_shape(m, "mask", ("H", "W"), sizes=sizes)
         _write_png(folder / "mask.png", m.astype(np.uint8) * 255)
     write_lp(folder / lp_name, names, li, overwrite=overwrite)
     return folder
@@ -550,10 +558,9 @@ def save_rti(
 # --------------------------------------------------------------------------- #
 # HSH RTI output
 # --------------------------------------------------------------------------- #
-def _coeff_maps(coefficients, what: str) -> np.ndarray:
+def _coeff_maps(coefficients) -> np.ndarray:
     c = _to_numpy(coefficients, "coefficients").astype(np.float64)
-    if c.ndim != 4 or c.shape[2] != 3 or c.shape[3] not in (9, 16):
-        raise ValueError(f"`coefficients` must have shape (H, W, 3, T) with T 9 or 16 for {what}, got {c.shape}")
+    check_shape(c, "coefficients", ("H", "W", 3, 9), ("H", "W", 3, 16))  # the 9 or 16 terms of the RTI HSH basis
     if not np.isfinite(c).all():
         raise ValueError("`coefficients` contains NaN or Inf values")
     return c
@@ -582,7 +589,7 @@ def write_rti_hsh(path, coefficients, overwrite: bool = False) -> Path:
     Example:
         >>> write_rti_hsh("object.rti", project_to_rti(res.normals, res.coefficients, 9))  # doctest: +SKIP
     """
-    c = _coeff_maps(coefficients, ".rti")
+    c = _coeff_maps(coefficients)
     H, W, _, T = c.shape
     p = Path(path)
     if p.exists() and not overwrite:
@@ -623,7 +630,7 @@ def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwr
 
     from PIL import Image
 
-    c = _coeff_maps(coefficients, "relight")
+    c = _coeff_maps(coefficients)
     if c.shape[3] != 9:
         raise ValueError(f"relight/OpenLIME evaluate 9 HSH terms; got {c.shape[3]}")
     fmt = fmt.lower().lstrip(".")

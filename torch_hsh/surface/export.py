@@ -29,8 +29,8 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from .._checks import check_tensor
-from .integrate import _check_mask, depth_to_normals
+from .._checks import check_shape, check_tensor
+from .integrate import _check_depth, depth_to_normals
 
 __all__ = ["save_depth", "depth_to_mesh", "save_mesh", "shade_depth", "MESH_EXTRA_HINT"]
 
@@ -47,16 +47,6 @@ def _trimesh():
             "(or pip install trimesh)"
         ) from e
     return trimesh
-
-
-def _check_depth(depth, mask):
-    check_tensor(depth, "depth", allow_nonfinite=True)
-    if depth.dim() != 2:
-        raise ValueError(f"`depth` must have shape (H, W), got {tuple(depth.shape)}")
-    m = _check_mask(mask, tuple(depth.shape), depth.device)
-    if not bool(torch.isfinite(depth[m]).all()):
-        raise ValueError("`depth` contains NaN or Inf inside `mask`")
-    return depth, m
 
 
 def _out_path(path, overwrite: bool, suffixes: Sequence[str]) -> Path:
@@ -181,8 +171,7 @@ def depth_to_mesh(
         vn = depth_to_normals(depth.detach().to(torch.float64), m).cpu().numpy()[rows, cols]
     else:
         check_tensor(normals, "normals", last_dim=3, allow_nonfinite=True)
-        if tuple(normals.shape) != (H, W, 3):
-            raise ValueError(f"`normals` must have shape (H, W, 3) = {(H, W, 3)}, got {tuple(normals.shape)}")
+        check_shape(normals, "normals", ("H", "W", 3), sizes={"H": H, "W": W})
         vn = normals.detach().cpu().numpy().astype(np.float64)[rows, cols]
         norm = np.linalg.norm(vn, axis=-1, keepdims=True)
         if not np.all(np.isfinite(vn)) or np.any(norm == 0):
@@ -191,11 +180,10 @@ def depth_to_mesh(
     colors = None
     if albedo is not None:
         check_tensor(albedo, "albedo", allow_nonfinite=True)
+        check_shape(albedo, "albedo", ("H", "W", 3), ("H", "W"), sizes={"H": H, "W": W})
         a = albedo.detach().cpu().numpy().astype(np.float64)
         if a.shape == (H, W):
             a = np.repeat(a[..., None], 3, axis=-1)
-        if a.shape != (H, W, 3):
-            raise ValueError(f"`albedo` must have shape (H, W, 3) or (H, W) = {(H, W)}, got {tuple(albedo.shape)}")
         a = a[rows, cols]
         if not np.all(np.isfinite(a)):
             raise ValueError("`albedo` contains NaN or Inf inside `mask`")
@@ -305,9 +293,8 @@ def shade_depth(
     shade = ambient + (1 - ambient) * shade
     if albedo is not None:
         check_tensor(albedo, "albedo", allow_nonfinite=True)
+        check_shape(albedo, "albedo", ("H", "W"), ("H", "W", 3), sizes=dict(zip("HW", m.shape)))
         a = albedo.detach().to(device=d.device, dtype=torch.float64)
-        if a.shape not in ((*m.shape,), (*m.shape, 3)):
-            raise ValueError(f"`albedo` must have shape (H, W) or (H, W, 3), got {tuple(albedo.shape)}")
         a = torch.nan_to_num(a).clamp(0, 1)
         shade = shade[..., None] * a if a.dim() == 3 else shade * a
     mm = m[..., None] if shade.dim() == 3 else m

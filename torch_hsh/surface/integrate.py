@@ -78,7 +78,7 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 import torch
 
-from .._checks import check_tensor
+from .._checks import check_shape, check_tensor
 
 __all__ = [
     "integrate_normals",
@@ -101,8 +101,7 @@ def _check_mask(mask, hw: Tuple[int, ...], device, name: str = "mask") -> torch.
         return torch.ones(hw, dtype=torch.bool, device=device)
     if not isinstance(mask, torch.Tensor):
         raise TypeError(f"`{name}` must be a torch.Tensor of shape (H, W), got {type(mask).__name__}")
-    if tuple(mask.shape) != tuple(hw):
-        raise ValueError(f"`{name}` must have shape (H, W) = {tuple(hw)}, got {tuple(mask.shape)}")
+    check_shape(mask, name, ("H", "W"), sizes={"H": hw[0], "W": hw[1]})
     if mask.dtype != torch.bool:
         if mask.is_floating_point() or mask.is_complex():
             raise TypeError(f"`{name}` must be a bool (or integer 0/1) tensor, got dtype {mask.dtype}")
@@ -119,6 +118,16 @@ def _check_normals(normals, mask) -> Tuple[torch.Tensor, torch.Tensor]:
     if not bool(torch.isfinite(normals[..., mask, :]).all()):
         raise ValueError("`normals` contains NaN or Inf inside `mask`; expected finite normals on the mask")
     return normals, mask
+
+
+def _check_depth(depth, mask) -> Tuple[torch.Tensor, torch.Tensor]:
+    """An (H, W) depth map, finite inside ``mask``, and the (H, W) bool mask (default: every pixel)."""
+    check_tensor(depth, "depth", allow_nonfinite=True)
+    check_shape(depth, "depth", ("H", "W"))
+    m = _check_mask(mask, tuple(depth.shape), depth.device)
+    if not bool(torch.isfinite(depth[m]).all()):
+        raise ValueError("`depth` contains NaN or Inf inside `mask`")
+    return depth, m
 
 
 def _positive_float(x, name: str) -> float:
@@ -211,12 +220,7 @@ def depth_to_normals(depth: torch.Tensor, mask: Optional[torch.Tensor] = None) -
         >>> depth_to_normals(z)[1, 2]
         tensor([-0.6000,  0.0000,  0.8000])
     """
-    check_tensor(depth, "depth", allow_nonfinite=True)
-    if depth.dim() != 2:
-        raise ValueError(f"`depth` must have shape (H, W), got {tuple(depth.shape)}")
-    m = _check_mask(mask, tuple(depth.shape), depth.device)
-    if not bool(torch.isfinite(depth[m]).all()):
-        raise ValueError("`depth` contains NaN or Inf inside `mask`")
+    depth, m = _check_depth(depth, mask)
     z = torch.where(m, depth, torch.zeros_like(depth))
 
     def axis_diff(z, m, dim):

@@ -25,7 +25,7 @@ from typing import Optional
 
 import torch
 
-from .._checks import check_dirs, check_tensor
+from .._checks import check_dirs, check_shape, check_tensor
 from ..scenes import cast_shadow_mask
 from .integrate import _check_mask
 
@@ -67,12 +67,10 @@ def light_visibility(
         (False, True, True)
     """
     check_tensor(depth, "depth", allow_nonfinite=True)
-    if depth.dim() != 2:
-        raise ValueError(f"`depth` must have shape (H, W), got {tuple(depth.shape)}")
+    check_shape(depth, "depth", ("H", "W"))
     m = _check_mask(mask, tuple(depth.shape), depth.device)
     check_dirs(lights, "lights")
-    if lights.dim() != 2:
-        raise ValueError(f"`lights` must have shape (L, 3), got {tuple(lights.shape)}")
+    check_shape(lights, "lights", ("L", 3))
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise ValueError(f"`chunk` must be a positive integer, got {chunk!r}")
     if isinstance(bias, bool) or not isinstance(bias, (int, float)) or not math.isfinite(bias) or bias < 0:
