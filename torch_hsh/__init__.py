@@ -1,5 +1,5 @@
 """torch_hsh: differentiable Helmholtz hemispherical-harmonic BRDF bases for PyTorch."""
-__version__ = "0.1.0"
+from ._version import __version__  # noqa: F401
 
 from ._checks import MAX_ANISOTROPIC_ORDER, MAX_ORDER, set_validation
 from .kernel import (

@@ -491,7 +491,7 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         write_coefficient_maps_exr(stage.file("coefficients.exr"), res.coefficients.detach().cpu().float())
         _dump_json(stage.file("metrics.json"), metrics)
         _save_pictures(stage, data, res, err_map, confidence, relit_idx=L // 2, say=say)
-        from . import __version__
+        from ._version import __version__
 
         stage.write_manifest({"tool": f"{PROG} ps", "torch_hsh_version": __version__,
                               "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -746,7 +746,7 @@ def _fit_quadrature(brdf, args):
 # --------------------------------------------------------------------------- #
 def build_parser() -> argparse.ArgumentParser:
     """The ``torch-hsh`` argument parser (subcommands ``ps``, ``fit``, ``lights``, ``rti`` and ``view``)."""
-    from . import __version__
+    from ._version import __version__
 
     ap = argparse.ArgumentParser(prog=PROG, description="Helmholtz HSH BRDF tools (torch_hsh).")
     ap.add_argument("--version", action="version", version=f"{PROG} {__version__}")
