@@ -430,7 +430,7 @@ def test_automatic_chunk_halves_on_out_of_memory(monkeypatch):
     """With chunk_size=None a batch that runs out of device memory is retried at half the size; a user's chunk is kept."""
     import torch_hsh.ps.coefficients as coef_mod
     import torch_hsh.ps.refinement as ref_mod
-    from torch_hsh.ps._common import MIN_CHUNK, for_chunks
+    from torch_hsh.ps._chunks import MIN_CHUNK, for_chunks
 
     n, l = _scene(600, 16, 23)
     img = render(n, l, BlinnPhong(torch.full((600, 3), 0.5, dtype=DT), torch.full((600, 1), 0.3, dtype=DT),

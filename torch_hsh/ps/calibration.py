@@ -35,7 +35,10 @@ from .observations import Observations
 from .refinement import refine_independent_chunk
 from .settings import DEFAULT_BASIS_RIDGE, Settings
 
-__all__ = ["Calibration", "calibrate", "fixed_calibration"]
+__all__ = ["Calibration", "calibrate", "fixed_calibration", "CALIBRATION_INFO"]
+
+#: Prefixes of the ``info`` keys that describe the calibration (stages 3a and 3) of a solve.
+CALIBRATION_INFO = ("calibration_", "materials", "basis_ridge")
 
 # Iteration budgets of the shared model (fixed, not set per dataset; see
 # docs/photometric_stereo.md for how much the results depend on them).

@@ -20,7 +20,8 @@ from typing import Dict, Optional, Tuple
 import torch
 
 from .._checks import check_dirs, check_tensor
-from ._common import row_sum
+from ._chunks import row_sum
+from .settings import Settings, check_dark_fraction, check_noise_sigma, check_saturation
 
 __all__ = ["PSInput", "Observations", "prepare_inputs", "observation_weights", "observe", "robust_sigma"]
 
@@ -242,18 +243,6 @@ def robust_sigma(x: torch.Tensor) -> float:
     return float(1.4826 * (x - med).abs().median())
 
 
-def _check_thresholds(dark_fraction, noise_sigma, saturation) -> None:
-    if isinstance(dark_fraction, bool) or not isinstance(dark_fraction, (int, float)) or not 0.0 <= dark_fraction < 1.0:
-        raise ValueError(f"`dark_fraction` must be a number in [0, 1), got {dark_fraction!r}")
-    for name, v in (("noise_sigma", noise_sigma), ("saturation", saturation)):
-        if v is None:
-            continue
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ValueError(f"`{name}` must be None (estimated) or a finite number, got {v!r}")
-        if (name == "noise_sigma" and v < 0) or (name == "saturation" and v <= 0):
-            raise ValueError(f"`{name}` must be {'>= 0' if name == 'noise_sigma' else '> 0'}, got {v!r}")
-
-
 def detect_saturation(raw_max: float, count_near_max: int, total: int) -> Optional[float]:
     """The saturation level if the largest raw value is a plateau (>= 3 and >= 0.01 % of the values within 0.1 %)."""
     if raw_max > 0 and count_near_max >= max(3, int(1e-4 * total)):
@@ -302,7 +291,7 @@ def observation_weights(
         >>> w.shape
         torch.Size([4, 10])
     """
-    _check_thresholds(dark_fraction, noise_sigma, saturation)
+    check_dark_fraction(dark_fraction), check_noise_sigma(noise_sigma), check_saturation(saturation)
     finite = (torch.isfinite(raw) & (raw >= 0)).all(-1) & torch.isfinite(y).all(-1)
     rawf = torch.where(finite.unsqueeze(-1), raw, torch.zeros_like(raw))
     info = {}
@@ -364,19 +353,15 @@ def observe(
     lights: torch.Tensor,
     intensities: Optional[torch.Tensor],
     mask: Optional[torch.Tensor],
-    dtype: Optional[torch.dtype],
-    dark_fraction: float,
-    noise_sigma: Optional[float],
-    saturation: Optional[float],
-    valid: Optional[torch.Tensor] = None,
+    cfg: Settings,
 ) -> Observations:
     """Validate, flatten, weight and normalise the observations (stage 1 of :func:`~torch_hsh.ps.solve_hsh`).
 
     Processed in chunks of pixels; the saturation plateau and the noise are
-    global statistics, the dark threshold is per pixel.
+    global statistics, the dark threshold is per pixel. Reads ``dtype``, ``valid`` and the thresholds of ``cfg``.
     """
-    _check_thresholds(dark_fraction, noise_sigma, saturation)
-    d = prepare_inputs(images, lights, intensities, mask, min_lights=3, dtype=dtype, valid=valid)
+    noise_sigma, saturation = cfg.noise_sigma, cfg.saturation
+    d = prepare_inputs(images, lights, intensities, mask, min_lights=3, dtype=cfg.dtype, valid=cfg.valid)
     P, L, C = d.y.shape
     e = d.intensities.to(d.y.dtype).unsqueeze(0)  # (1, L, C)
     chunks = [slice(s, min(P, s + _CHUNK)) for s in range(0, P, _CHUNK)]
@@ -392,7 +377,7 @@ def observe(
     w0 = torch.empty(P, L, dtype=d.y.dtype, device=d.y.device)
     n_sat = n_dark = 0
     for sl in chunks:
-        w, inf = observation_weights(d.y[sl], d.y[sl] * e, None, dark_fraction, noise_sigma, saturation)
+        w, inf = observation_weights(d.y[sl], d.y[sl] * e, None, cfg.dark_fraction, noise_sigma, saturation)
         w0[sl] = w * d.valid[sl]
         n_sat += inf["saturated_fraction"] * w.numel()
         n_dark += inf["dark_fraction"] * w.numel()

@@ -25,7 +25,7 @@ from typing import Sequence
 
 import torch
 
-from ._common import tangent_frame
+from ._geometry import tangent_frame
 from .design import MixedDesign, _design_factors
 
 

@@ -20,7 +20,7 @@ from typing import Optional
 
 import torch
 
-from ._common import for_chunks
+from ._chunks import for_chunks
 from .design import MixedDesign
 from .optim import (
     PixelProblem,
@@ -174,7 +174,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
     def run(sl: slice) -> None:
         if shared:
             n, w, Wt, k = refine_shared_chunk(
-                basis, d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.max_iter,
+                basis, d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.iterations,
                 _PIXEL_IRLS, cfg.search_angles, cfg.search_azimuths, wdt,
             )
             n = torch.nn.functional.normalize(n, dim=-1)
@@ -183,7 +183,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
         else:
             n, ch, k = refine_independent_chunk(
                 d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, view, cfg.order, profile, cfg.ridge, cfg.robust,
-                cfg.robust_iters, cfg.search_angles, cfg.search_azimuths, cfg.max_iter, obs.sigma_y,
+                cfg.robust_iters, cfg.search_angles, cfg.search_azimuths, cfg.iterations, obs.sigma_y,
             )
             w = ch.w
             assert ridge_diag is not None
