@@ -4,6 +4,7 @@ import math
 import pytest
 import torch
 
+from conftest import random_ps_scene
 from torch_hsh import ps
 from torch_hsh.brdf import BlinnPhong, CookTorranceGGX, Lambertian
 from torch_hsh.render import render, render_coefficients
@@ -12,14 +13,8 @@ DT = torch.float64
 
 
 def _scene(p, l, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    n = torch.randn(p, 3, generator=g, dtype=DT) * torch.tensor([0.45, 0.45, 0.2], dtype=DT)
-    n[:, 2] += 1.0
-    n = torch.nn.functional.normalize(n, dim=-1)
-    # DiLiGenT-like cone of lights around the view direction
-    d = torch.randn(l, 3, generator=g, dtype=DT) * torch.tensor([0.45, 0.45, 0.1], dtype=DT)
-    d[:, 2] += 1.0
-    return n, torch.nn.functional.normalize(d, dim=-1)
+    n, lights, _ = random_ps_scene(p, l, seed)
+    return n, lights
 
 
 def _mean_err(a, b):

@@ -5,7 +5,7 @@ from typing import Optional, Tuple
 
 import torch
 
-from .._checks import check_dirs
+from .._checks import check_dirs, check_shape
 
 __all__ = ["angular_error", "tangent_frame"]
 
@@ -29,8 +29,7 @@ def angular_error(
     """
     check_dirs(normals, "normals")
     check_dirs(reference, "reference")
-    if normals.shape != reference.shape:
-        raise ValueError(f"`normals` {tuple(normals.shape)} and `reference` {tuple(reference.shape)} must have the same shape")
+    check_shape(reference, "reference", tuple(normals.shape))  # the shape of `normals`
     a = torch.nn.functional.normalize(normals, dim=-1)
     b = torch.nn.functional.normalize(reference.to(normals.dtype), dim=-1)
     ang = torch.rad2deg(torch.arccos((a * b).sum(-1).clamp(-1.0, 1.0)))

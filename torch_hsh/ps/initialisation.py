@@ -11,6 +11,8 @@ from typing import Optional
 
 import torch
 
+from .._checks import check_shape
+
 from .lambertian import _solve_flat, trimmed_weights
 from .observations import _CHUNK, Observations
 
@@ -39,10 +41,7 @@ def initial_normals(obs: Observations, init: Optional[torch.Tensor] = None, prog
         if bar is not None:
             bar.close()
     else:
-        if not isinstance(init, torch.Tensor) or tuple(init.shape) != (*d.pixel_shape, 3):
-            raise ValueError(
-                f"`init` must be a tensor of shape {(*d.pixel_shape, 3)}, got {getattr(init, 'shape', init)!r}"
-            )
+        check_shape(init, "init", (*d.pixel_shape, 3))
         n_start = torch.nn.functional.normalize(init.to(device=dev, dtype=dt).reshape(-1, 3)[d.mask.reshape(-1)], dim=-1)
     # keep the start in front of the camera
     nz = n_start[:, 2].clamp(min=0.05)

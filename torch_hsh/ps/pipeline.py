@@ -47,7 +47,6 @@ from typing import Dict, Optional
 
 import torch
 
-from ..kernel import num_isotropic
 from ._chunks import ROW_CHUNK, row_sum, scatter_pixels
 from .calibration import calibrate, fixed_calibration
 from .coefficients import fit_coefficients
@@ -57,7 +56,7 @@ from .observations import observe
 from .materials import select_materials
 from .refinement import refine
 from .result import HSHResult, directional_albedo_view
-from .settings import AUTO, Settings, option_docs, resolve_chunk
+from .settings import AUTO, Settings, option_docs
 from .shadows import shadow_loop
 
 __all__ = ["solve_hsh", "run_stages", "confidence", "MIN_VALID_OBSERVATIONS"]
@@ -85,9 +84,9 @@ def solve_hsh(
       normal is fixed). Sharing is what makes the normal's elevation
       identifiable: with one viewpoint a BRDF free at every pixel only fixes
       the normal's azimuth (Alldrin & Kriegman 2007). Steps: robust Lambertian
-      start; on a random subset of ``calibration_pixels`` pixels, alternate
+      start; on a random subset of pixels (its size is an option), alternate
       Cauchy-IRLS fits of ``(B, W)`` with Levenberg–Marquardt on the normals
-      (``calibration_rounds`` rounds); then, with ``B`` fixed, every pixel
+      (for a set number of rounds); then, with ``B`` fixed, every pixel
       runs IRLS + variable-projection LM on its normal (the mixing weights
       are linear, solved in closed form), with a coarse cone search at the
       first iteration. The robust scale is estimated from the data.
@@ -150,11 +149,7 @@ def run_stages(images: torch.Tensor, lights: torch.Tensor, intensities: Optional
     t_start = time.perf_counter()
     obs = observe(images, lights, intensities, mask, cfg)  # 1
     clock = _StageClock(t_start, obs.data.y.device)
-    wdt = obs.data.dtype if cfg.work_dtype is None else cfg.work_dtype
-    chunk = resolve_chunk(cfg.chunk_size, obs.data.y.device, obs.data.y.shape[1], num_isotropic(cfg.order),
-                          cfg.materials is None, torch.empty(0, dtype=wdt).element_size(),
-                          torch.empty(0, dtype=obs.data.dtype).element_size())
-    cfg = dataclasses.replace(cfg, chunk_size=chunk, chunk_auto=cfg.chunk_size is None)
+    cfg = cfg.chunked(obs.data.y, obs.data.dtype)
     obs.info["chunk_size"] = float(cfg.chunk)
     clock.lap("observations")
     n_init = initial_normals(obs, cfg.init, progress=cfg.progress)  # 2

@@ -8,14 +8,14 @@ option lists from it. A new option is one field here plus the stage that reads i
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 import math
 import numbers
 from typing import Optional, Tuple, Union
 
 import torch
 
-from .._checks import check_order
+from .._checks import check_order, check_shape
 
 __all__ = ["Settings", "option_docs", "DEFAULT_ORDER", "DEFAULT_MATERIALS", "DEFAULT_BASIS_RIDGE", "CAUCHY_C", "AUTO"]
 
@@ -178,12 +178,11 @@ def _check_basis(basis, s):
     from ..kernel import num_isotropic
 
     K = num_isotropic(s.order)
-    if not isinstance(basis, torch.Tensor) or basis.dim() != 2 or basis.shape[1] != K or not 1 <= basis.shape[0] <= 8:
-        raise ValueError(f"`basis` must be a (M, {K}) tensor (M in 1..8, K for order {s.order}), "
-                         f"got {tuple(basis.shape) if isinstance(basis, torch.Tensor) else type(basis).__name__}")
+    M = check_shape(basis, "basis", ("M", K))["M"]  # K for the order
+    if not 1 <= M <= 8:
+        raise ValueError(f"`basis` must have M in 1..8 rows (basis BRDFs), got {M}")
     if not basis.is_floating_point() or not bool(torch.isfinite(basis).all()) or bool((basis.norm(dim=-1) == 0).any()):
         raise ValueError("`basis` must hold finite floating-point values and no zero row")
-    M = int(basis.shape[0])
     if s.materials is None or isinstance(s.materials, str):
         raise ValueError(f"`basis` fixes the shared model with M = {M} basis BRDFs; `materials` must not be "
                          f"None or 'auto' with it, got {s.materials!r}")
@@ -369,6 +368,20 @@ class Settings:
         if self.max_iter is None:
             return 15 if self.materials is None else 16
         return self.max_iter
+
+    def work(self, dtype: torch.dtype) -> torch.dtype:
+        """The dtype of the per-pixel normal iterations for data in ``dtype``: ``work_dtype``, or ``dtype``."""
+        return dtype if self.work_dtype is None else self.work_dtype
+
+    def chunked(self, y: torch.Tensor, dtype: torch.dtype) -> "Settings":
+        """These settings with ``chunk_size`` resolved for the observations ``y (P, L, C)`` computed in ``dtype``
+        (:func:`resolve_chunk`; ``chunk_auto`` records whether it was chosen here)."""
+        from ..kernel import num_isotropic
+
+        chunk = resolve_chunk(self.chunk_size, y.device, y.shape[1], num_isotropic(self.order), self.materials is None,
+                              torch.empty(0, dtype=self.work(dtype)).element_size(),
+                              torch.empty(0, dtype=dtype).element_size())
+        return replace(self, chunk_size=chunk, chunk_auto=self.chunk_size is None)
 
     @property
     def chunk(self) -> int:
