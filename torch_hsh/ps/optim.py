@@ -150,11 +150,8 @@ def lm_normals(design: MixedDesign, y, w, rd, n, iters: int, h: float, max_step:
     sw = w.sqrt()
     srd = rd.sqrt()
     used = 0
-    for _ in range(iters):
-        idx = active.nonzero().squeeze(1)
+    for idx in active_rows(active, iters):
         q = idx.numel()
-        if q == 0:
-            break
         used += 1
         ni, Pi, yi, wi, rdi = n[idx], Psi[idx], y[idx], w[idx], rd[idx]
         t1, t2 = tangent_frame(ni)
@@ -188,6 +185,16 @@ def lm_normals(design: MixedDesign, y, w, rd, n, iters: int, h: float, max_step:
         acc = lm_accept(idx, n, cost, mu, active, ni, nn_, cn, dn, tol)
         Psi[idx] = torch.where(acc[:, None, None], Pn, Pi)
     return n, used, Psi
+
+
+def active_rows(active: torch.Tensor, iters: int):
+    """The indices of the rows (pixels) still ``active``, once per iteration, for at most ``iters`` iterations
+    (the iterations stop early once no row is active; the caller updates ``active`` in place)."""
+    for _ in range(iters):
+        idx = active.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            return
+        yield idx
 
 
 def lm_accept(idx, n, cost, mu, active, ni, n_new, c_new, dn, tol) -> torch.Tensor:
@@ -330,10 +337,7 @@ def lm_independent(ch: PixelProblem, n: torch.Tensor, max_iter: int, tol: float 
     mu = torch.full((p,), 1e-3, dtype=n.dtype, device=n.device)
     active = torch.ones(p, dtype=torch.bool, device=n.device)
     iters = 0
-    for _ in range(max_iter):
-        idx = active.nonzero().squeeze(1)
-        if idx.numel() == 0:
-            break
+    for idx in active_rows(active, max_iter):
         iters += 1
         ni = n[idx]
         JtJ, g, t1, t2 = ch.jacobian(ni, idx)

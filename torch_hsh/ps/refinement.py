@@ -25,6 +25,7 @@ from .design import MixedDesign
 from .optim import (
     PixelProblem,
     _ridge_diag,
+    active_rows,
     cone_search,
     fd_step,
     irls_weights,
@@ -91,10 +92,7 @@ def refine_shared_chunk(B, y, w0, n, lights, order, scale, c, iters, irls, searc
 
     active = torch.ones(nd.shape[0], dtype=torch.bool, device=nd.device)
     used = 0
-    for it in range(iters):
-        idx = active.nonzero().squeeze(1)
-        if idx.numel() == 0:
-            break
+    for it, idx in enumerate(active_rows(active, iters)):
         used += 1
         yi, ni, Pi = yd[idx], nd[idx], Psi[idx]
         wi, _ = irls_weights(Pi, yi, w[idx], w0d[idx], scale, c, irls)
