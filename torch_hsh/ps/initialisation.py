@@ -7,7 +7,6 @@ camera (``n_z >= 0.05`` before normalisation).
 """
 from __future__ import annotations
 
-from typing import Optional
 
 import torch
 
@@ -15,14 +14,16 @@ from .._checks import check_shape
 
 from .lambertian import _solve_flat, trimmed_weights
 from .observations import _CHUNK, Observations
+from .settings import Settings
 
 __all__ = ["initial_normals"]
 
 
-def initial_normals(obs: Observations, init: Optional[torch.Tensor] = None, progress: bool = False) -> torch.Tensor:
-    """Start normals ``(P, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``init``.
+def initial_normals(obs: Observations, cfg: Settings) -> torch.Tensor:
+    """Start normals ``(P, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``cfg.init``.
 
-    ``progress``: a tqdm bar over the pixels of the Lambertian solve (like the later stages)."""
+    ``cfg.progress``: a tqdm bar over the pixels of the Lambertian solve (like the later stages)."""
+    init, progress = cfg.init, cfg.progress
     d = obs.data
     dev, dt = d.y.device, d.dtype
     if init is None:

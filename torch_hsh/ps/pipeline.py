@@ -152,7 +152,7 @@ def run_stages(images: torch.Tensor, lights: torch.Tensor, intensities: Optional
     cfg = cfg.chunked(obs.data.y, obs.data.dtype)
     obs.info["chunk_size"] = float(cfg.chunk)
     clock.lap("observations")
-    n_init = initial_normals(obs, cfg.init, progress=cfg.progress)  # 2
+    n_init = initial_normals(obs, cfg)  # 2
     clock.lap("initialisation")
     cfg, cal, n_start = _calibration(obs, n_init, cfg, clock)  # 3a, 3
     basis, scale = (None, None) if cal is None else (cal.basis, cal.scale)
