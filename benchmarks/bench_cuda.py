@@ -89,7 +89,7 @@ def _timed(ps, dev, images, lights, repeat, mask=None, intensities=None, **kw):
 
 def _sync_counts(ps, dev, images, lights, **kw):
     """Synchronising operations per stage (``set_sync_debug_mode``), CUDA only."""
-    import torch_hsh.ps.hsh as hsh
+    import torch_hsh.ps.pipeline as hsh
 
     per, orig = {}, hsh._StageClock.lap
     with warnings.catch_warnings(record=True) as rec:

@@ -67,3 +67,38 @@ def _random_dirs(shape, dtype=torch.float64, upper: bool = True, seed: int = 0):
 @pytest.fixture
 def random_dirs():
     return _random_dirs
+
+
+def random_ps_scene(p: int, l: int, seed: int = 0, spread: float = 0.45, dtype=torch.float64):
+    """Random photometric-stereo geometry, the one builder of the ``test_ps*`` files.
+
+    ``p`` unit normals around the view direction (x, y spread ``spread``, z 0.2) and ``l`` lights in a
+    DiLiGenT-like cone around it (x, y 0.45, z 0.1), drawn in that order from one generator seeded with
+    ``seed``; returns ``(normals (p, 3), lights (l, 3), generator)`` (a test draws its albedo etc. next).
+    """
+    g = torch.Generator().manual_seed(seed)
+    n = torch.randn(p, 3, generator=g, dtype=dtype) * torch.tensor([spread, spread, 0.2], dtype=dtype)
+    n[:, 2] += 1.0
+    n = torch.nn.functional.normalize(n, dim=-1)
+    d = torch.randn(l, 3, generator=g, dtype=dtype) * torch.tensor([0.45, 0.45, 0.1], dtype=dtype)
+    d[:, 2] += 1.0
+    return n, torch.nn.functional.normalize(d, dim=-1), g
+
+
+def blinn_phong_ps_scene(p: int, l: int, seed: int = 0):
+    """:func:`random_ps_scene` (spread 0.4) rendered with a Blinn-Phong BRDF over a random RGB albedo, with
+    read noise 1e-3; returns ``(images (l, p, 3), lights (l, 3), normals (p, 3))`` in float64."""
+    from torch_hsh.brdf import BlinnPhong
+    from torch_hsh.render import render
+
+    dt = torch.float64
+    n, lights, g = random_ps_scene(p, l, seed, spread=0.4)
+    alb = 0.2 + 0.6 * torch.rand(p, 3, generator=g, dtype=dt)
+    model = BlinnPhong(alb, torch.full((p, 1), 0.3, dtype=dt), torch.full((p, 1), 20.0, dtype=dt))
+    return render(n, lights, model, read_std=1e-3, seed=seed), lights, n
+
+
+@pytest.fixture
+def ps_scene():
+    """The builder :func:`random_ps_scene` (for tests that take it as a fixture)."""
+    return random_ps_scene

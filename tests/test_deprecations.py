@@ -7,6 +7,7 @@ import pytest
 # (old path, new path, names that must be the same objects through both)
 MOVED = [
     ("torch_hsh.basis", "torch_hsh.kernel", ["hsh", "helmholtz_isotropic", "set_backend", "_const"]),
+    ("torch_hsh.ps.hsh", "torch_hsh.ps.pipeline", ["solve_hsh", "confidence", "MIN_VALID_OBSERVATIONS", "_result"]),
 ]
 
 

@@ -4,6 +4,7 @@ import math
 import pytest
 import torch
 
+from conftest import random_ps_scene
 from torch_hsh import ps
 from torch_hsh.brdf import BlinnPhong, CookTorranceGGX, Lambertian
 from torch_hsh.render import render, render_coefficients
@@ -12,14 +13,8 @@ DT = torch.float64
 
 
 def _scene(p, l, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    n = torch.randn(p, 3, generator=g, dtype=DT) * torch.tensor([0.45, 0.45, 0.2], dtype=DT)
-    n[:, 2] += 1.0
-    n = torch.nn.functional.normalize(n, dim=-1)
-    # DiLiGenT-like cone of lights around the view direction
-    d = torch.randn(l, 3, generator=g, dtype=DT) * torch.tensor([0.45, 0.45, 0.1], dtype=DT)
-    d[:, 2] += 1.0
-    return n, torch.nn.functional.normalize(d, dim=-1)
+    n, lights, _ = random_ps_scene(p, l, seed)
+    return n, lights
 
 
 def _mean_err(a, b):
@@ -430,7 +425,7 @@ def test_automatic_chunk_halves_on_out_of_memory(monkeypatch):
     """With chunk_size=None a batch that runs out of device memory is retried at half the size; a user's chunk is kept."""
     import torch_hsh.ps.coefficients as coef_mod
     import torch_hsh.ps.refinement as ref_mod
-    from torch_hsh.ps._common import MIN_CHUNK, for_chunks
+    from torch_hsh.ps._chunks import MIN_CHUNK, for_chunks
 
     n, l = _scene(600, 16, 23)
     img = render(n, l, BlinnPhong(torch.full((600, 3), 0.5, dtype=DT), torch.full((600, 1), 0.3, dtype=DT),
@@ -490,3 +485,36 @@ def test_progress_covers_every_long_stage_and_changes_no_number(capsys, material
         assert desc in err, (desc, err)
     assert "HSH start normals (robust Lambertian): 100%" in err and "HSH coefficients: 100%" in err
     assert torch.equal(quiet.normals, loud.normals) and torch.equal(quiet.coefficients, loud.coefficients)
+
+
+def test_settings_are_checked_from_their_fields_and_solve_hsh_takes_them():
+    import dataclasses
+
+    s = ps.Settings(order=2, calibration_starts=["lambertian"], max_iter=3.0)
+    assert s.calibration_starts == ("lambertian",) and s.max_iter == 3 and s.iterations == 3
+    assert ps.Settings().iterations == 16 and ps.Settings(materials=None).iterations == 15
+    with pytest.raises(ValueError, match="basis_ridge"):
+        dataclasses.replace(s, basis_ridge=2.0)
+    with pytest.raises(ValueError, match="shadow_bias"):
+        ps.Settings(shadow_bias=-1.0)
+    for f in dataclasses.fields(ps.Settings):  # every option documented where it is defined ...
+        assert f.metadata["doc"], f.name
+        if not f.metadata["internal"]:  # ... and listed in solve_hsh's docstring
+            assert f"\n        {f.name}: " in ps.solve_hsh.__doc__, f.name
+    n, l = _scene(30, 10)
+    img = render(n, l, Lambertian(0.5))
+    with pytest.raises(TypeError, match="not_an_option"):
+        ps.solve_hsh(img, l, not_an_option=1)
+    with pytest.raises(TypeError):
+        ps.solve_hsh(img, l, None, None, 3)  # options are keyword-only
+    kw = dict(materials=None, max_iter=2, search_angles=())
+    a = ps.solve_hsh(img, l, **kw)
+    b = ps.solve_hsh(img, l, settings=ps.Settings(materials=None, search_angles=()), max_iter=2)
+    assert torch.equal(a.normals, b.normals) and torch.equal(a.coefficients, b.coefficients)
+
+
+def test_old_result_path_of_holdout_evaluation_warns_and_forwards():
+    from torch_hsh.ps import result
+
+    with pytest.warns(DeprecationWarning, match="torch_hsh.ps.holdout_evaluation"):
+        assert result.holdout_evaluation is ps.holdout_evaluation

@@ -2,26 +2,14 @@
 import pytest
 import torch
 
+from conftest import blinn_phong_ps_scene
 from torch_hsh import ps
-from torch_hsh.brdf import BlinnPhong
-from torch_hsh.render import render
 
 pytestmark = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
 
 
 def _scene(p=300, l=32):
-    dt = torch.float64
-    g = torch.Generator().manual_seed(0)
-    n = torch.randn(p, 3, generator=g, dtype=dt) * torch.tensor([0.4, 0.4, 0.2], dtype=dt)
-    n[:, 2] += 1.0
-    n = torch.nn.functional.normalize(n, dim=-1)
-    d = torch.randn(l, 3, generator=g, dtype=dt) * torch.tensor([0.45, 0.45, 0.1], dtype=dt)
-    d[:, 2] += 1.0
-    lights = torch.nn.functional.normalize(d, dim=-1)
-    alb = 0.2 + 0.6 * torch.rand(p, 3, generator=g, dtype=dt)
-    img = render(n, lights, BlinnPhong(alb, torch.full((p, 1), 0.3, dtype=dt), torch.full((p, 1), 20.0, dtype=dt)),
-                 read_std=1e-3, seed=0)
-    return img, lights, n
+    return blinn_phong_ps_scene(p, l)
 
 
 @pytest.mark.parametrize("materials", [2, None])

@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from conftest import random_ps_scene
 from torch_hsh import ps
 from torch_hsh.brdf import BlinnPhong, CookTorranceGGX, Lambertian
 from torch_hsh.ps.materials import light_folds, one_standard_error_choice
@@ -20,13 +21,7 @@ def _materials_scene(n_materials, p=180, l=30, seed=0, noise=1e-3):
     shape scaled per pixel and channel, so the scene is exactly ``n_materials``
     shared BRDFs with free RGB weights (the model's structure).
     """
-    g = torch.Generator().manual_seed(seed)
-    n = torch.randn(p, 3, generator=g, dtype=DT) * torch.tensor([0.45, 0.45, 0.2], dtype=DT)
-    n[:, 2] += 1.0
-    n = torch.nn.functional.normalize(n, dim=-1)
-    d = torch.randn(l, 3, generator=g, dtype=DT) * torch.tensor([0.45, 0.45, 0.1], dtype=DT)
-    d[:, 2] += 1.0
-    d = torch.nn.functional.normalize(d, dim=-1)
+    n, d, g = random_ps_scene(p, l, seed)
     one = torch.ones(p, 1, dtype=DT)
     shapes = [
         Lambertian(one),

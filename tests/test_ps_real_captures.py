@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
+from conftest import blinn_phong_ps_scene
 from torch_hsh import ps
-from torch_hsh.brdf import BlinnPhong
 from torch_hsh.ps.observations import (
     QUANTILE_MAX_ELEMENTS,
     background_ring,
@@ -18,23 +18,13 @@ from torch_hsh.ps.observations import (
     row_quantile,
     strided_sample,
 )
-from torch_hsh.render import render
 
 DT = torch.float64
 FAST = dict(calibration_pixels=256, calibration_rounds=4, max_iter=4)
 
 
 def _scene(p=120, l=24, seed=0, dtype=DT):
-    g = torch.Generator().manual_seed(seed)
-    n = torch.randn(p, 3, generator=g, dtype=DT) * torch.tensor([0.4, 0.4, 0.2], dtype=DT)
-    n[:, 2] += 1.0
-    n = torch.nn.functional.normalize(n, dim=-1)
-    d = torch.randn(l, 3, generator=g, dtype=DT) * torch.tensor([0.45, 0.45, 0.1], dtype=DT)
-    d[:, 2] += 1.0
-    lights = torch.nn.functional.normalize(d, dim=-1)
-    alb = 0.2 + 0.6 * torch.rand(p, 3, generator=g, dtype=DT)
-    model = BlinnPhong(alb, torch.full((p, 1), 0.3, dtype=DT), torch.full((p, 1), 20.0, dtype=DT))
-    img = render(n, lights, model, read_noise=1e-3, seed=seed)
+    img, lights, n = blinn_phong_ps_scene(p, l, seed)
     return img.to(dtype), lights.to(dtype), n
 
 

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from torch_hsh import ps, scenes
+from torch_hsh.ps import Settings
 from torch_hsh.ps.shadows import shadow_loop
 
 
@@ -22,11 +23,11 @@ def test_loop_excludes_the_cast_shadows_of_the_integrated_surface_and_stops_at_t
     mask = torch.ones(n.shape[:2], dtype=torch.bool)
     calls = []
 
-    def solve(images, lights, mask=None, valid=None, init=None, **kw):  # an oracle solver: the true normals
-        calls.append(valid)
+    def solve(images, lights, intensities, mask, cfg):  # an oracle solver: the true normals
+        calls.append(cfg.valid)
         return SimpleNamespace(normals=n.clone(), mask=mask, info={})
 
-    res = shadow_loop(solve, img, l, mask, None, 3, 0.25, None)
+    res = shadow_loop(solve, img, l, None, mask, Settings(cast_shadows=3, shadow_bias=0.25))
     assert calls[0] is None and len(calls) == 2  # one re-solve, then the occlusion set no longer changes
     v = calls[1]
     agree = float((v == vis).double().mean())
@@ -43,11 +44,11 @@ def test_loop_keeps_the_callers_exclusions():
     given[0] = False
     seen = []
 
-    def solve(images, lights, mask=None, valid=None, init=None, **kw):
-        seen.append(valid)
+    def solve(images, lights, intensities, mask, cfg):
+        seen.append(cfg.valid)
         return SimpleNamespace(normals=n.clone(), mask=mask, info={})
 
-    shadow_loop(solve, img, l, mask, given, 1, 0.25, None)
+    shadow_loop(solve, img, l, None, mask, Settings(valid=given, cast_shadows=1))
     assert not bool(seen[-1][0].any())
 
 
@@ -57,13 +58,13 @@ def test_loop_keeps_the_first_solves_basis_brdfs():
     B = torch.nn.functional.normalize(torch.randn(2, 20, dtype=torch.float64), dim=-1)
     kws = []
 
-    def solve(images, lights, mask=None, valid=None, init=None, **kw):
-        kws.append(kw)
+    def solve(images, lights, intensities, mask, cfg):
+        kws.append(cfg)
         return SimpleNamespace(normals=n.clone(), mask=mask, info={"robust_scale": 0.25}, basis_brdfs=B)
 
-    shadow_loop(solve, img, l, mask, None, 1, 0.25, None, order=3)
-    assert "basis" not in kws[0]
-    assert kws[1]["basis"] is B and kws[1]["robust_scale"] == 0.25 and kws[1]["order"] == 3
+    shadow_loop(solve, img, l, None, mask, Settings(order=3, cast_shadows=1))
+    assert kws[0].basis is None
+    assert kws[1].basis is B and kws[1].robust_scale == 0.25 and kws[1].order == 3
 
 
 def test_loop_reports_the_first_calibration_and_keeps_its_number_of_materials():
@@ -74,14 +75,14 @@ def test_loop_reports_the_first_calibration_and_keeps_its_number_of_materials():
     first = {"robust_scale": 0.25, "calibration_start": 1.0, "calibration_pixels": 2048.0, "basis_ridge": 3e-3,
              "materials_chosen": 3.0}
 
-    def solve(images, lights, mask=None, valid=None, init=None, **kw):
-        kws.append(kw)
+    def solve(images, lights, intensities, mask, cfg):
+        kws.append(cfg)
         info = dict(first) if len(kws) == 1 else {"robust_scale": 0.25, "basis_given": 1.0, "calibration_pixels": 0.0}
         return SimpleNamespace(normals=n.clone(), mask=mask, info=info, basis_brdfs=B)
 
-    res = shadow_loop(solve, img, l, mask, None, 1, 0.25, None, materials="auto", basis_ridge=3e-3)
-    assert kws[0]["materials"] == "auto" and kws[1]["materials"] == 3  # "auto" resolved by the first solve
-    assert kws[1]["basis_ridge"] == 3e-3
+    res = shadow_loop(solve, img, l, None, mask, Settings(materials="auto", basis_ridge=3e-3, cast_shadows=1))
+    assert kws[0].materials == "auto" and kws[1].materials == 3  # "auto" resolved by the first solve
+    assert kws[1].basis_ridge == 3e-3
     for k in ("calibration_start", "calibration_pixels", "basis_ridge", "materials_chosen"):
         assert res.info[k] == first[k], k
     assert "basis_given" not in res.info and res.info["shadow_rounds"] == 1.0
@@ -98,17 +99,17 @@ def test_cast_shadows_arguments_are_checked():
 
 
 def _spy_solves(monkeypatch):
-    """Record every solve of the shadow loop: (valid, kwargs, result); the loop calls hsh.solve_hsh by name."""
-    from torch_hsh.ps import hsh
+    """Record every solve of the shadow loop: (valid, settings, result); solve_hsh passes pipeline.run_stages by name."""
+    from torch_hsh.ps import pipeline
 
-    real, calls = hsh.solve_hsh, []
+    real, calls = pipeline.run_stages, []
 
-    def spy(images, lights, **kw):
-        res = real(images, lights, **kw)
-        calls.append((kw.get("valid"), kw, res))
+    def spy(images, lights, intensities, mask, cfg):
+        res = real(images, lights, intensities, mask, cfg)
+        calls.append((cfg.valid, cfg, res))
         return res
 
-    monkeypatch.setattr(hsh, "solve_hsh", spy)
+    monkeypatch.setattr(pipeline, "run_stages", spy)
     return calls
 
 
@@ -161,6 +162,6 @@ def test_cast_shadows_with_automatic_materials_and_a_basis_ridge(monkeypatch):
     _check_exclusions(calls, vis, r)
     # the re-solve keeps the first solve's model: its basis BRDFs, the number "auto" chose, the ridge
     first_res, kw = calls[0][2], calls[1][1]
-    assert kw["basis"] is first_res.basis_brdfs and kw["materials"] == first_res.info["materials_chosen"]
-    assert kw["basis_ridge"] == 1e-2 and torch.allclose(r.basis_brdfs, first_res.basis_brdfs, rtol=0, atol=1e-6)
+    assert kw.basis is first_res.basis_brdfs and kw.materials == first_res.info["materials_chosen"]
+    assert kw.basis_ridge == 1e-2 and torch.allclose(r.basis_brdfs, first_res.basis_brdfs, rtol=0, atol=1e-6)
     assert _mean_angle(r.normals, n) <= _mean_angle(first_res.normals, n) + 1e-3

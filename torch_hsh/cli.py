@@ -99,17 +99,6 @@ def _int_in(lo: Optional[int] = None, hi: Optional[int] = None, what: str = "int
     return parse
 
 
-def _basis_ridge_arg(text: str) -> float:
-    """A finite number in (0, 1]: the relative ridge on the shared basis BRDFs."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or not 0 < value <= 1:
-        raise argparse.ArgumentTypeError(f"must be in (0, 1], got {text}")
-    return value
-
-
 def _materials_arg(text: str):
     """``auto``, or an integer >= 0 (0: independent per-pixel BRDFs)."""
     if text.strip().lower() == "auto":
@@ -322,11 +311,6 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--linear", action="store_true",
                    help="RTI captures only: the photographs are already linear (default: remove the sRGB curve)")
     p.add_argument("--out", default="results/ps_demo", help="output folder (default results/ps_demo)")
-    p.add_argument("--order", type=_int_in(0, 12), default=None,
-                   help="HSH order (default torch_hsh.ps.DEFAULT_ORDER)")
-    p.add_argument("--materials", type=_materials_arg, default=None,
-                   help="shared basis BRDFs of the HSH solver (default torch_hsh.ps.DEFAULT_MATERIALS; "
-                        "0: independent BRDF per pixel)")
     p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or mps (default cpu)")
     p.add_argument("--holdout", type=_int_in(0), default=0,
                    help="0 (off) or 1..L-3: also fit on all but N lights and report the relighting error")
@@ -342,15 +326,6 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--threads", type=_int_in(1, 1024), default=2, help="CPU threads for torch (default 2)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing --out folder that is not a torch-hsh result (its files are deleted)")
-    p.add_argument("--cast-shadows", type=_int_in(0, 5), default=0,
-                   help="rounds of the cast-shadow loop of the HSH solver (default 0: off; see torch_hsh.ps.shadows)")
-    p.add_argument("--flattened-starts", action="store_true",
-                   help="two more calibration starts with flattened Lambertian normals (opt-in, about +25%% time; "
-                        "see docs/photometric_stereo.md)")
-    p.add_argument("--basis-ridge", type=_basis_ridge_arg, default=None,
-                   help="relative ridge on the shared basis BRDFs (default torch_hsh.ps.DEFAULT_BASIS_RIDGE, 3e-3); "
-                        "1e-3 fits sharp specular lobes better but lets the result depend on the calibration seed "
-                        "(see docs/photometric_stereo.md)")
     p.add_argument("--depth", action="store_true",
                    help="integrate the normals: write depth.npy and depth.exr (pixel units, orthographic) and surface.png")
     p.add_argument("--mesh", nargs="?", const="ply", choices=("ply", "obj"), default=None,
@@ -358,9 +333,46 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--integrator", choices=("poisson", "bilateral"), default="poisson",
                    help="normal integration for --depth / --mesh (default poisson)")
     p.add_argument("--figures", default=None, help="also copy the PNGs (prefixed ps_) into this folder")
+    _add_solver_flags(p)
     _add_common(p)
     p.set_defaults(handler=_run_ps, parser=p)
     return p
+
+
+def _solver_flags():
+    """The fields of :class:`torch_hsh.ps.Settings` that name a ``torch-hsh ps`` flag, with that flag's spec."""
+    import dataclasses
+
+    from .ps.settings import Settings
+
+    return [(f, f.metadata["cli"]) for f in dataclasses.fields(Settings) if f.metadata["cli"] is not None]
+
+
+def _add_solver_flags(p: argparse.ArgumentParser) -> None:
+    """The solver's flags, generated from the fields of :class:`torch_hsh.ps.Settings` (flag, type, help)."""
+    types = {"int": _int_in, "float": lambda lo, hi, lo_open: _float_in(lo, hi, lo_open=lo_open),
+             "materials": lambda: _materials_arg}
+    g = p.add_argument_group("HSH solver options (fields of torch_hsh.ps.Settings)")
+    for f, cli in _solver_flags():
+        if "const" in cli:  # a switch that sets the option to one value
+            g.add_argument(cli["flag"], dest=f.name, action="store_const", const=cli["const"], help=cli["help"])
+        else:
+            kind, *bounds = cli["type"]
+            g.add_argument(cli["flag"], dest=f.name, type=types[kind](*bounds), default=None, help=cli["help"])
+
+
+def _solver_options(args) -> Dict[str, Any]:
+    """The solver's options from the flags: a flag left out gives the option's default (a switch left out
+    gives nothing); ``--materials 0`` is the independent model (``materials=None``)."""
+    opts = {}
+    for f, cli in _solver_flags():
+        value = getattr(args, f.name)
+        if value is None and "const" in cli:
+            continue
+        opts[f.name] = f.default if value is None else value
+    if opts.get("materials") == 0:
+        opts["materials"] = None
+    return opts
 
 
 def _save_surface(stage, args, res, mask, metrics, say) -> None:
@@ -394,13 +406,8 @@ def _errors(n, gt, mask):
     return float(e.mean()), float(e.median())
 
 
-def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
-    from . import ps
-    from .io.exr import write_coefficient_maps_exr
-
-    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
-    # ---- arguments and inputs, nothing created yet
-    dev = _parse_device(ap, args.device)
+def _check_ps_paths(args, ap: argparse.ArgumentParser):
+    """``--out`` (checked, not yet created) and ``--figures`` (or None): neither inside the other nor the data."""
     out = _check_out(ap, Path(args.out), args.overwrite)
     if args.data is not None:
         data_dir = Path(os.path.abspath(args.data))
@@ -413,9 +420,53 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
             ap.error(f"argument --figures: {figures} exists and is not a folder")
         if figures == out or out in figures.parents:
             ap.error("argument --figures: must not be inside --out (the result folder is replaced as a whole)")
+    return out, figures
+
+
+def _solve_methods(args, opts, imgs, lights, inten, mask, gt, say):
+    """Lambertian LS, robust Lambertian and the HSH solver; returns the HSH result, its time and the table rows."""
+    from . import ps
+
+    rows = []
+    t = time.perf_counter()
+    lam = ps.lambertian_ls(imgs, lights, inten, mask)
+    rows.append(("Lambertian LS", *_errors(lam.normals, gt, mask), time.perf_counter() - t))
+    t = time.perf_counter()
+    rob = ps.robust_lambertian(imgs, lights, inten, mask)
+    rows.append(("robust Lambertian (trimmed)", *_errors(rob.normals, gt, mask), time.perf_counter() - t))
+    t = time.perf_counter()
+    res = ps.solve_hsh(imgs, lights, inten, mask, progress=not args.quiet, **opts)
+    t_hsh = time.perf_counter() - t
+    rows.append((f"HSH (order {opts['order']})", *_errors(res.normals, gt, mask), t_hsh))
+    say(f"\n{'method':32s} {'mean (deg)':>10s} {'median (deg)':>12s} {'time (s)':>9s}")
+    for name, mean, med, tt in rows:
+        say(f"{name:32s} {mean:10.2f} {med:12.2f} {tt:9.2f}")
+    return res, t_hsh, rows
+
+
+def _holdout_metrics(args, opts, imgs, lights, inten, mask, say) -> Dict[str, Any]:
+    """``--holdout N``: the relighting error on N held-out lights, with the same solver options."""
+    from . import ps
+
+    t = time.perf_counter()
+    ho = ps.holdout_evaluation(imgs, lights, inten, mask, holdout=args.holdout, seed=args.seed, **opts)
+    say(f"\nheld-out relighting ({args.holdout} lights): HSH relative RMSE {ho.relative_rmse:.4f}, "
+        f"robust Lambertian {ho.lambertian_relative_rmse:.4f}")
+    return {"held_out_lights": ho.test_indices.tolist(), "relative_rmse": ho.relative_rmse, "rmse": ho.rmse,
+            "lambertian_relative_rmse": ho.lambertian_relative_rmse, "runtime_s": time.perf_counter() - t}
+
+
+def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
+    from . import ps
+    from .io.exr import write_coefficient_maps_exr
+
+    say = (lambda *a, **k: None) if args.quiet else (lambda *a, **k: print(*a, **k, flush=True))
+    # ---- arguments and inputs, nothing created yet
+    dev = _parse_device(ap, args.device)
+    out, figures = _check_ps_paths(args, ap)
     torch.set_num_threads(args.threads)
-    order = ps.DEFAULT_ORDER if args.order is None else args.order
-    materials = ps.DEFAULT_MATERIALS if args.materials is None else (args.materials or None)
+    opts = _solver_options(args)
+    order, materials = opts["order"], opts["materials"]
     if args.mesh:
         try:
             import trimesh  # noqa: F401
@@ -436,25 +487,7 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     with _Staging(out) as stage:
         say(f"data: {data['name']}  pixels={P} lights={L} order={order} "
             f"materials={materials if materials else 'independent'} device={dev}")
-        rows = []
-        t = time.perf_counter()
-        lam = ps.lambertian_ls(imgs, lights, inten, mask)
-        rows.append(("Lambertian LS", *_errors(lam.normals, gt, mask), time.perf_counter() - t))
-        t = time.perf_counter()
-        rob = ps.robust_lambertian(imgs, lights, inten, mask)
-        rows.append(("robust Lambertian (trimmed)", *_errors(rob.normals, gt, mask), time.perf_counter() - t))
-        t = time.perf_counter()
-        kw: Dict[str, Any] = {"cast_shadows": args.cast_shadows} if args.cast_shadows else {}
-        if args.flattened_starts:
-            kw["calibration_starts"] = ("lambertian", "independent", "flattened")
-        kw["basis_ridge"] = ps.DEFAULT_BASIS_RIDGE if args.basis_ridge is None else args.basis_ridge
-        res = ps.solve_hsh(imgs, lights, inten, mask, order=order, materials=materials, progress=not args.quiet, **kw)
-        t_hsh = time.perf_counter() - t
-        rows.append((f"HSH (order {order})", *_errors(res.normals, gt, mask), t_hsh))
-        say(f"\n{'method':32s} {'mean (deg)':>10s} {'median (deg)':>12s} {'time (s)':>9s}")
-        for name, mean, med, tt in rows:
-            say(f"{name:32s} {mean:10.2f} {med:12.2f} {tt:9.2f}")
-
+        res, t_hsh, rows = _solve_methods(args, opts, imgs, lights, inten, mask, gt, say)
         metrics: Dict[str, Any] = {
             "method": "hsh", "order": order, "materials": materials, "pixels": P, "lights": L,
             "runtime_s": t_hsh, "data": data["name"], "drop_first": args.drop_first,
@@ -473,15 +506,7 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         if confidence is not None:
             metrics["confidence"] = _confidence_summary(confidence, mask.cpu().numpy())
         if args.holdout > 0:
-            t = time.perf_counter()
-            ho = ps.holdout_evaluation(imgs, lights, inten, mask, holdout=args.holdout, seed=args.seed,
-                                       order=order, materials=materials, **kw)  # the same solver options
-            metrics["holdout"] = {
-                "held_out_lights": ho.test_indices.tolist(), "relative_rmse": ho.relative_rmse, "rmse": ho.rmse,
-                "lambertian_relative_rmse": ho.lambertian_relative_rmse, "runtime_s": time.perf_counter() - t,
-            }
-            say(f"\nheld-out relighting ({args.holdout} lights): HSH relative RMSE {ho.relative_rmse:.4f}, "
-                f"robust Lambertian {ho.lambertian_relative_rmse:.4f}")
+            metrics["holdout"] = _holdout_metrics(args, opts, imgs, lights, inten, mask, say)
 
         np.save(stage.file("normals.npy"), res.normals.detach().cpu().numpy().astype(np.float32))
         if hasattr(res, "save"):

@@ -3,15 +3,18 @@
 * :func:`lambertian_ls` — Woodham least squares.
 * :func:`robust_lambertian` — trimmed least squares (drop darkest 25 %, brightest 10 % by default).
 * :func:`solve_hsh` — normals + isotropic Helmholtz BRDF coefficients per pixel, with a few basis
-  BRDFs shared by the object (default) or independent BRDFs per pixel.
+  BRDFs shared by the object (default) or independent BRDFs per pixel; its options are the fields of
+  :class:`Settings` (each with its default, check and doc).
 * :func:`holdout_evaluation` — fit on a subset of the lights, relighting error on the rest.
 * :func:`angular_error` — per-pixel angular error in degrees.
 
-The HSH solver is a pipeline of stages, one module each (see :mod:`torch_hsh.ps.hsh`):
+The HSH solver is a pipeline of stages, one module each (see :mod:`torch_hsh.ps.pipeline`):
 :mod:`~torch_hsh.ps.observations` → :mod:`~torch_hsh.ps.initialisation` →
 :mod:`~torch_hsh.ps.calibration` → :mod:`~torch_hsh.ps.refinement` →
 :mod:`~torch_hsh.ps.coefficients` → :mod:`~torch_hsh.ps.result`; the forward model is in
-:mod:`~torch_hsh.ps.design` and the numerical kernels in :mod:`~torch_hsh.ps.optim`.
+:mod:`~torch_hsh.ps.design` and the numerical kernels in :mod:`~torch_hsh.ps.optim`. Above the
+pipeline: the cast-shadow loop (:mod:`~torch_hsh.ps.shadows`) and the held-out-light evaluation
+(:mod:`~torch_hsh.ps.evaluation`).
 
 Inputs everywhere: ``images (L, H, W, C)`` or ``(L, P, C)``, ``lights (L, 3)`` in the DiLiGenT frame
 (x right, y up, z toward the camera), optional ``intensities (L,)``/``(L, C)`` and ``mask (H, W)``.
@@ -20,12 +23,13 @@ Example:
     >>> from torch_hsh import ps
     >>> res = ps.solve_hsh(images, lights, mask=mask)  # doctest: +SKIP
 """
-from ._common import angular_error
-from .hsh import solve_hsh
+from ._geometry import angular_error
+from .evaluation import holdout_evaluation
 from .lambertian import LambertianResult, lambertian_ls, robust_lambertian, trimmed_weights
 from .observations import observation_weights
-from .result import HoldoutResult, HSHResult, directional_albedo_view, holdout_evaluation
-from .settings import DEFAULT_BASIS_RIDGE, DEFAULT_MATERIALS, DEFAULT_ORDER
+from .pipeline import solve_hsh
+from .result import HoldoutResult, HSHResult, directional_albedo_view
+from .settings import DEFAULT_BASIS_RIDGE, DEFAULT_MATERIALS, DEFAULT_ORDER, Settings
 
 __all__ = [
     "DEFAULT_BASIS_RIDGE",
@@ -34,6 +38,7 @@ __all__ = [
     "HSHResult",
     "HoldoutResult",
     "LambertianResult",
+    "Settings",
     "angular_error",
     "directional_albedo_view",
     "holdout_evaluation",
@@ -43,3 +48,11 @@ __all__ = [
     "solve_hsh",
     "trimmed_weights",
 ]
+
+
+def __getattr__(name):
+    if name == "hsh":  # the deprecated module path (torch_hsh.ps.pipeline); importing it warns
+        import importlib
+
+        return importlib.import_module(f"{__name__}.hsh")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -35,7 +35,10 @@ from .observations import Observations
 from .refinement import refine_independent_chunk
 from .settings import DEFAULT_BASIS_RIDGE, Settings
 
-__all__ = ["Calibration", "calibrate", "fixed_calibration"]
+__all__ = ["Calibration", "calibrate", "fixed_calibration", "CALIBRATION_INFO"]
+
+#: Prefixes of the ``info`` keys that describe the calibration (stages 3a and 3) of a solve.
+CALIBRATION_INFO = ("calibration_", "materials", "basis_ridge")
 
 # Iteration budgets of the shared model (fixed, not set per dataset; see
 # docs/photometric_stereo.md for how much the results depend on them).
@@ -135,7 +138,7 @@ def _calibrate(y, w0, n, lights, order, W, rounds, irls, lm_iter, c, basis_ridge
 
 
 def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y, n_pixels, rounds, starts, seed,
-                      work_dtype, c, progress, info, basis_ridge=DEFAULT_BASIS_RIDGE):
+                      wdt, c, progress, info, basis_ridge=DEFAULT_BASIS_RIDGE):
     """Calibrate the shared basis BRDFs on a seeded random subset of ``n_pixels`` pixels.
 
     The alternation (:func:`_calibrate`) keeps the basin it starts in, so it
@@ -157,10 +160,10 @@ def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y,
     W0 = _initial_mixing(alb, M, seed)
     starts_S = [n_start[S]]
     if "independent" in starts:
-        view = torch.tensor([0.0, 0.0, 1.0], dtype=work_dtype, device=dev)
+        view = torch.tensor([0.0, 0.0, 1.0], dtype=wdt, device=dev)
         n_ind, _, _ = refine_independent_chunk(
-            yS.to(work_dtype), w0S.to(work_dtype), n_start[S].to(work_dtype), lights.to(work_dtype), view, order,
-            profile.to(work_dtype), ridge, True, 1, (), 0, _INDEPENDENT_START_ITERS, sigma_y,
+            yS.to(wdt), w0S.to(wdt), n_start[S].to(wdt), lights.to(wdt), view, order,
+            profile.to(wdt), ridge, True, 1, (), 0, _INDEPENDENT_START_ITERS, sigma_y,
         )
         starts_S.append(torch.nn.functional.normalize(n_ind.to(dt), dim=-1))
     if "flattened" in starts:
@@ -177,8 +180,8 @@ def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y,
     for k_s, nS0 in it_starts:
         # in the work dtype (the (M K, M K) basis solve is always float64)
         B_k, scale_k, n_k = _calibrate(
-            yS.to(work_dtype), w0S.to(work_dtype), nS0.to(work_dtype), lights.to(work_dtype), order,
-            W0.to(work_dtype), rounds, _CAL_IRLS, _CAL_LM_ITERS, c, basis_ridge,
+            yS.to(wdt), w0S.to(wdt), nS0.to(wdt), lights.to(wdt), order,
+            W0.to(wdt), rounds, _CAL_IRLS, _CAL_LM_ITERS, c, basis_ridge,
         )
         # unit rows in the output dtype, so that passing them back as `basis=` (which renormalises) changes nothing
         cands.append((_unit_rows(B_k.to(dt)), scale_k, k_s, n_k.to(dt)))
@@ -226,7 +229,7 @@ def calibrate(obs: Observations, n_start: torch.Tensor, cfg: Settings) -> Calibr
     assert cfg.materials is not None  # only the shared model calibrates
     d, w0, info = obs.data, obs.weights, obs.info
     dt = d.dtype
-    wdt = dt if cfg.work_dtype is None else cfg.work_dtype
+    wdt = cfg.work(dt)
     profile = ridge_profile(cfg.order, dt, d.y.device)
     with torch.no_grad():
         B, scale, S, n_cal = _calibrate_shared(

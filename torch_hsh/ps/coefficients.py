@@ -18,7 +18,7 @@ from typing import Optional
 
 import torch
 
-from ._common import for_chunks
+from ._chunks import for_chunks
 from .design import ridge_profile
 from .observations import Observations
 from .optim import PixelProblem

@@ -7,20 +7,23 @@ camera (``n_z >= 0.05`` before normalisation).
 """
 from __future__ import annotations
 
-from typing import Optional
 
 import torch
 
+from .._checks import check_shape
+
 from .lambertian import _solve_flat, trimmed_weights
 from .observations import _CHUNK, Observations
+from .settings import Settings
 
 __all__ = ["initial_normals"]
 
 
-def initial_normals(obs: Observations, init: Optional[torch.Tensor] = None, progress: bool = False) -> torch.Tensor:
-    """Start normals ``(P, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``init``.
+def initial_normals(obs: Observations, cfg: Settings) -> torch.Tensor:
+    """Start normals ``(P, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``cfg.init``.
 
-    ``progress``: a tqdm bar over the pixels of the Lambertian solve (like the later stages)."""
+    ``cfg.progress``: a tqdm bar over the pixels of the Lambertian solve (like the later stages)."""
+    init, progress = cfg.init, cfg.progress
     d = obs.data
     dev, dt = d.y.device, d.dtype
     if init is None:
@@ -39,10 +42,7 @@ def initial_normals(obs: Observations, init: Optional[torch.Tensor] = None, prog
         if bar is not None:
             bar.close()
     else:
-        if not isinstance(init, torch.Tensor) or tuple(init.shape) != (*d.pixel_shape, 3):
-            raise ValueError(
-                f"`init` must be a tensor of shape {(*d.pixel_shape, 3)}, got {getattr(init, 'shape', init)!r}"
-            )
+        check_shape(init, "init", (*d.pixel_shape, 3))
         n_start = torch.nn.functional.normalize(init.to(device=dev, dtype=dt).reshape(-1, 3)[d.mask.reshape(-1)], dim=-1)
     # keep the start in front of the camera
     nz = n_start[:, 2].clamp(min=0.05)

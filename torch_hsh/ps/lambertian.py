@@ -19,7 +19,7 @@ from typing import Optional
 
 import torch
 
-from ._common import scatter_pixels
+from ._chunks import scatter_pixels
 from .observations import prepare_inputs
 
 __all__ = ["LambertianResult", "lambertian_ls", "robust_lambertian", "trimmed_weights"]

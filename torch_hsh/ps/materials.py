@@ -207,7 +207,7 @@ def select_materials(obs: Observations, n_start: torch.Tensor, cfg: Settings,
     if L < _MIN_LIGHTS:
         raise ValueError(f"`materials='auto'` needs at least {_MIN_LIGHTS} lights to hold some out, got {L}; "
                          "pass an integer `materials`")
-    wdt = d.dtype if cfg.work_dtype is None else cfg.work_dtype
+    wdt = cfg.work(d.dtype)
     # the same seeded permutation as the calibration subset: its first pixels
     S = _calibration_subset(w0, min(cfg.calibration_pixels, _SELECT_PIXELS), cfg.seed)
     yS, w0S = d.y[S].to(wdt), w0[S].to(wdt)

@@ -19,10 +19,12 @@ from typing import Dict, Optional, Tuple
 
 import torch
 
-from .._checks import check_dirs, check_tensor
-from ._common import row_sum
+from .._checks import check_dirs, check_shape, check_tensor
+from ..render import _intensities
+from ._chunks import row_sum
+from .settings import Settings, check_dark_fraction, check_noise_sigma, check_saturation
 
-__all__ = ["PSInput", "Observations", "prepare_inputs", "observation_weights", "observe", "robust_sigma"]
+__all__ = ["PSInput", "Observations", "check_inputs", "prepare_inputs", "observation_weights", "observe", "robust_sigma"]
 
 
 @dataclass
@@ -87,6 +89,41 @@ def _storage_dtype(images: torch.Tensor, dtype: torch.dtype) -> torch.dtype:
     return torch.float32 if dtype in (torch.float32, torch.float64) else dtype
 
 
+def check_inputs(images, lights, intensities=None, mask=None, valid=None, min_lights: int = 3) -> Dict[str, int]:
+    """Check the inputs of every photometric-stereo solver; returns the sizes ``L`` and ``C``.
+
+    ``images (L, *S, C)`` (float; at least 3 dimensions: lights, pixel shape ``S``, channels),
+    ``lights (L, 3)`` on the images' device, at least ``min_lights`` of them; ``intensities (L,)``,
+    ``(L, 1)`` or ``(L, C)``; ``mask`` of shape ``S``; ``valid`` of shape ``(L, *S)``. Values (zero
+    lights, non-positive intensities, an empty mask) are checked where they are read.
+    """
+    check_tensor(images, "images", allow_nonfinite=True)
+    if images.dim() < 3:  # any pixel shape S: a rank check, not a fixed pattern
+        raise ValueError(
+            f"`images` must have shape (L, H, W, C) or (L, P, C) (a trailing channel axis, C = 1 or 3), "
+            f"got {tuple(images.shape)}"
+        )
+    L, S, C = images.shape[0], tuple(images.shape[1:-1]), images.shape[-1]
+    check_dirs(lights, "lights")
+    sizes = check_shape(lights, "lights", ("L", 3), sizes={"L": L, "C": C})
+    if L < min_lights:
+        raise ValueError(f"photometric stereo needs at least {min_lights} lights, got {L}")
+    if images.device != lights.device:
+        raise ValueError(f"`lights` is on {lights.device} but `images` is on {images.device}")
+    if not (images.is_floating_point() or images.dtype in (torch.uint8, torch.int16, torch.int32, torch.uint16)):
+        raise TypeError(f"`images` must be a floating-point or unsigned-integer tensor, got {images.dtype}")
+    if intensities is not None:
+        check_tensor(intensities, "intensities")
+        check_shape(intensities, "intensities", ("L",), ("L", "C"), ("L", 1), sizes=sizes)
+    if mask is not None:
+        if not isinstance(mask, torch.Tensor):
+            raise TypeError(f"`mask` must be a torch.Tensor, got {type(mask).__name__}")
+        check_shape(mask, "mask", S)  # the pixel shape of `images`
+    if valid is not None:
+        check_shape(valid, "valid", (L, *S))
+    return sizes
+
+
 def prepare_inputs(
     images: torch.Tensor,
     lights: torch.Tensor,
@@ -102,26 +139,7 @@ def prepare_inputs(
     one ``(P, L, C)`` buffer of the storage dtype (see :class:`PSInput`); the
     input stack is never converted as a whole.
     """
-    check_tensor(images, "images", allow_nonfinite=True)
-    if images.dim() < 3:
-        raise ValueError(
-            f"`images` must have shape (L, H, W, C) or (L, P, C) (a trailing channel axis, C = 1 or 3), "
-            f"got {tuple(images.shape)}"
-        )
-    check_dirs(lights, "lights")
-    if lights.dim() != 2:
-        raise ValueError(f"`lights` must have shape (L, 3), got {tuple(lights.shape)}")
-    L = images.shape[0]
-    if lights.shape[0] != L:
-        raise ValueError(
-            f"`lights` has {lights.shape[0]} rows but `images` has {L} images (first axis); they must match"
-        )
-    if L < min_lights:
-        raise ValueError(f"photometric stereo needs at least {min_lights} lights, got {L}")
-    if images.device != lights.device:
-        raise ValueError(f"`lights` is on {lights.device} but `images` is on {images.device}")
-    if not (images.is_floating_point() or images.dtype in (torch.uint8, torch.int16, torch.int32, torch.uint16)):
-        raise TypeError(f"`images` must be a floating-point or unsigned-integer tensor, got {images.dtype}")
+    L = check_inputs(images, lights, intensities, mask, valid, min_lights)["L"]
     dtype = dtype or (images.dtype if images.is_floating_point() else torch.float32)
     store = _storage_dtype(images, dtype)
     dev = images.device
@@ -132,34 +150,13 @@ def prepare_inputs(
     if bool((nrm < 1e-6).any()):
         raise ValueError("`lights` contains a zero-length direction")
     lights = lights / nrm.unsqueeze(-1)
-    if intensities is None:
-        e = torch.ones(L, C, dtype=dtype, device=dev)
-    else:
-        check_tensor(intensities, "intensities")
-        if intensities.dim() == 1:
-            intensities = intensities.unsqueeze(-1)
-        if intensities.dim() != 2 or intensities.shape[0] != L or intensities.shape[1] not in (1, C):
-            raise ValueError(
-                f"`intensities` must have shape (L,) or (L, C) = ({L},) or ({L}, {C}), got {tuple(intensities.shape)}"
-            )
-        e = intensities.to(dtype=dtype, device=dev).expand(L, C)
-        if bool((e <= 0).any()):
-            raise ValueError("`intensities` must be > 0")
-    if mask is None:
-        mask_t = torch.ones(S, dtype=torch.bool, device=dev)
-    else:
-        if not isinstance(mask, torch.Tensor):
-            raise TypeError(f"`mask` must be a torch.Tensor, got {type(mask).__name__}")
-        if tuple(mask.shape) != S:
-            raise ValueError(f"`mask` must have the pixel shape of `images` {S}, got {tuple(mask.shape)}")
-        mask_t = mask.to(device=dev).bool()
+    e = _intensities(intensities, L, C, torch.empty(0, dtype=dtype, device=dev)).to(dev)  # (L, C), as the renderer
+    if intensities is not None and bool((e <= 0).any()):
+        raise ValueError("`intensities` must be > 0")
+    mask_t = torch.ones(S, dtype=torch.bool, device=dev) if mask is None else mask.to(device=dev).bool()
     if not bool(mask_t.any()):
         raise ValueError("`mask` selects no pixel")
     if valid is not None:
-        if not isinstance(valid, torch.Tensor) or tuple(valid.shape) != (L, *S):
-            raise ValueError(
-                f"`valid` must be a bool tensor of shape (L, *S) = {(L, *S)}, got {tuple(getattr(valid, 'shape', ()))}"
-            )
         valid = valid.to(device=dev).bool().reshape(L, -1)
     flat = images.reshape(L, -1, C)
     m = mask_t.reshape(-1)
@@ -242,18 +239,6 @@ def robust_sigma(x: torch.Tensor) -> float:
     return float(1.4826 * (x - med).abs().median())
 
 
-def _check_thresholds(dark_fraction, noise_sigma, saturation) -> None:
-    if isinstance(dark_fraction, bool) or not isinstance(dark_fraction, (int, float)) or not 0.0 <= dark_fraction < 1.0:
-        raise ValueError(f"`dark_fraction` must be a number in [0, 1), got {dark_fraction!r}")
-    for name, v in (("noise_sigma", noise_sigma), ("saturation", saturation)):
-        if v is None:
-            continue
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ValueError(f"`{name}` must be None (estimated) or a finite number, got {v!r}")
-        if (name == "noise_sigma" and v < 0) or (name == "saturation" and v <= 0):
-            raise ValueError(f"`{name}` must be {'>= 0' if name == 'noise_sigma' else '> 0'}, got {v!r}")
-
-
 def detect_saturation(raw_max: float, count_near_max: int, total: int) -> Optional[float]:
     """The saturation level if the largest raw value is a plateau (>= 3 and >= 0.01 % of the values within 0.1 %)."""
     if raw_max > 0 and count_near_max >= max(3, int(1e-4 * total)):
@@ -302,7 +287,7 @@ def observation_weights(
         >>> w.shape
         torch.Size([4, 10])
     """
-    _check_thresholds(dark_fraction, noise_sigma, saturation)
+    check_dark_fraction(dark_fraction), check_noise_sigma(noise_sigma), check_saturation(saturation)
     finite = (torch.isfinite(raw) & (raw >= 0)).all(-1) & torch.isfinite(y).all(-1)
     rawf = torch.where(finite.unsqueeze(-1), raw, torch.zeros_like(raw))
     info = {}
@@ -364,19 +349,15 @@ def observe(
     lights: torch.Tensor,
     intensities: Optional[torch.Tensor],
     mask: Optional[torch.Tensor],
-    dtype: Optional[torch.dtype],
-    dark_fraction: float,
-    noise_sigma: Optional[float],
-    saturation: Optional[float],
-    valid: Optional[torch.Tensor] = None,
+    cfg: Settings,
 ) -> Observations:
     """Validate, flatten, weight and normalise the observations (stage 1 of :func:`~torch_hsh.ps.solve_hsh`).
 
     Processed in chunks of pixels; the saturation plateau and the noise are
-    global statistics, the dark threshold is per pixel.
+    global statistics, the dark threshold is per pixel. Reads ``dtype``, ``valid`` and the thresholds of ``cfg``.
     """
-    _check_thresholds(dark_fraction, noise_sigma, saturation)
-    d = prepare_inputs(images, lights, intensities, mask, min_lights=3, dtype=dtype, valid=valid)
+    noise_sigma, saturation = cfg.noise_sigma, cfg.saturation
+    d = prepare_inputs(images, lights, intensities, mask, min_lights=3, dtype=cfg.dtype, valid=cfg.valid)
     P, L, C = d.y.shape
     e = d.intensities.to(d.y.dtype).unsqueeze(0)  # (1, L, C)
     chunks = [slice(s, min(P, s + _CHUNK)) for s in range(0, P, _CHUNK)]
@@ -392,7 +373,7 @@ def observe(
     w0 = torch.empty(P, L, dtype=d.y.dtype, device=d.y.device)
     n_sat = n_dark = 0
     for sl in chunks:
-        w, inf = observation_weights(d.y[sl], d.y[sl] * e, None, dark_fraction, noise_sigma, saturation)
+        w, inf = observation_weights(d.y[sl], d.y[sl] * e, None, cfg.dark_fraction, noise_sigma, saturation)
         w0[sl] = w * d.valid[sl]
         n_sat += inf["saturated_fraction"] * w.numel()
         n_dark += inf["dark_fraction"] * w.numel()

@@ -25,7 +25,7 @@ from typing import Sequence
 
 import torch
 
-from ._common import tangent_frame
+from ._geometry import tangent_frame
 from .design import MixedDesign, _design_factors
 
 
@@ -150,11 +150,8 @@ def lm_normals(design: MixedDesign, y, w, rd, n, iters: int, h: float, max_step:
     sw = w.sqrt()
     srd = rd.sqrt()
     used = 0
-    for _ in range(iters):
-        idx = active.nonzero().squeeze(1)
+    for idx in active_rows(active, iters):
         q = idx.numel()
-        if q == 0:
-            break
         used += 1
         ni, Pi, yi, wi, rdi = n[idx], Psi[idx], y[idx], w[idx], rd[idx]
         t1, t2 = tangent_frame(ni)
@@ -185,19 +182,40 @@ def lm_normals(design: MixedDesign, y, w, rd, n, iters: int, h: float, max_step:
         nn_ = torch.nn.functional.normalize(ni + delta[:, :1] * t1 + delta[:, 1:] * t2, dim=-1)
         Pn = design(nn_)
         cn, _ = reduced_cost(Pn, wi, yi, rdi)
-        c0 = cost[idx]
-        acc = cn < c0
-        rel = (c0 - cn) / c0.clamp(min=1e-300)
-        # masked updates by selection (no boolean indexing: no host synchronisation)
-        n[idx] = torch.where(acc.unsqueeze(-1), nn_, ni)
+        acc = lm_accept(idx, n, cost, mu, active, ni, nn_, cn, dn, tol)
         Psi[idx] = torch.where(acc[:, None, None], Pn, Pi)
-        cost[idx] = torch.where(acc, cn, c0)
-        mu_i = torch.where(acc, mu[idx] / 3.0, mu[idx] * 4.0).clamp(1e-9, 1e9)
-        mu[idx] = mu_i
-        small = dn.squeeze(-1) < tol
-        done = (acc & (small | (rel < 1e-10))) | (~acc & ((mu_i >= 1e8) | small))
-        active[idx] = ~done
     return n, used, Psi
+
+
+def active_rows(active: torch.Tensor, iters: int):
+    """The indices of the rows (pixels) still ``active``, once per iteration, for at most ``iters`` iterations
+    (the iterations stop early once no row is active; the caller updates ``active`` in place)."""
+    for _ in range(iters):
+        idx = active.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            return
+        yield idx
+
+
+def lm_accept(idx, n, cost, mu, active, ni, n_new, c_new, dn, tol) -> torch.Tensor:
+    """The Levenberg–Marquardt accept/reject step of the pixels ``idx``, in place; returns the accepted mask.
+
+    A step that lowers the cost is kept and the damping ``mu`` divided by 3, else rejected and ``mu``
+    multiplied by 4; a pixel stops (``active`` False) once an accepted step is small (below ``tol``) or
+    barely lowers the cost, or a rejected one is small or ``mu`` has grown past 1e8. Masked updates by
+    selection (no boolean indexing: no host synchronisation).
+    """
+    c0 = cost[idx]
+    acc = c_new < c0
+    rel = (c0 - c_new) / c0.clamp(min=1e-300)
+    n[idx] = torch.where(acc.unsqueeze(-1), n_new, ni)
+    cost[idx] = torch.where(acc, c_new, c0)
+    mu_i = torch.where(acc, mu[idx] / 3.0, mu[idx] * 4.0).clamp(1e-9, 1e9)
+    mu[idx] = mu_i
+    small = dn.squeeze(-1) < tol
+    done = (acc & (small | (rel < 1e-10))) | (~acc & ((mu_i >= 1e8) | small))
+    active[idx] = ~done
+    return acc
 
 
 class PixelProblem:
@@ -319,10 +337,7 @@ def lm_independent(ch: PixelProblem, n: torch.Tensor, max_iter: int, tol: float 
     mu = torch.full((p,), 1e-3, dtype=n.dtype, device=n.device)
     active = torch.ones(p, dtype=torch.bool, device=n.device)
     iters = 0
-    for _ in range(max_iter):
-        idx = active.nonzero().squeeze(1)
-        if idx.numel() == 0:
-            break
+    for idx in active_rows(active, max_iter):
         iters += 1
         ni = n[idx]
         JtJ, g, t1, t2 = ch.jacobian(ni, idx)
@@ -334,16 +349,7 @@ def lm_independent(ch: PixelProblem, n: torch.Tensor, max_iter: int, tol: float 
         delta = delta * (max_step / dn.clamp(min=max_step))
         nn = torch.nn.functional.normalize(ni + delta[:, :1] * t1 + delta[:, 1:] * t2, dim=-1)
         cn = ch.cost(nn, idx)
-        c0 = cost[idx]
-        acc = cn < c0
-        rel = (c0 - cn) / c0.clamp(min=1e-300)
-        n[idx] = torch.where(acc.unsqueeze(-1), nn, ni)
-        cost[idx] = torch.where(acc, cn, c0)
-        mu_i = torch.where(acc, mu[idx] / 3.0, mu[idx] * 4.0).clamp(1e-9, 1e9)
-        mu[idx] = mu_i
-        small = dn.squeeze(-1) < tol
-        done = (acc & (small | (rel < 1e-10))) | (~acc & ((mu_i >= 1e8) | small))
-        active[idx] = ~done
+        lm_accept(idx, n, cost, mu, active, ni, nn, cn, dn, tol)
     return n, cost, iters
 
 

@@ -20,11 +20,12 @@ from typing import Optional
 
 import torch
 
-from ._common import for_chunks
+from ._chunks import for_chunks
 from .design import MixedDesign
 from .optim import (
     PixelProblem,
     _ridge_diag,
+    active_rows,
     cone_search,
     fd_step,
     irls_weights,
@@ -45,7 +46,7 @@ _PIXEL_IRLS = 2  # reweighting passes per iteration of the per-pixel pass
 
 
 def refine_independent_chunk(y, w0, n, lights, view, order, profile, ridge, robust, robust_iters, search_angles,
-                       search_azimuths, max_iter, sigma_y):
+                       search_azimuths, lm_iters, sigma_y):
     """Independent per-pixel model on one batch: returns normals, the :class:`PixelProblem` and LM iterations."""
     ch = PixelProblem(y, w0, lights, view, order, profile, ridge)
     n = n.clone()
@@ -61,17 +62,17 @@ def refine_independent_chunk(y, w0, n, lights, view, order, profile, ridge, robu
         for _ in range(robust_iters + 1):
             ch.set_weights(robust_coefficient_weights(ch, n, w0, floor))
     n = cone_search(n, ch.cost, search_angles, search_azimuths)  # coarse search over a cone of candidates
-    n, _, k = lm_independent(ch, n, max_iter)
+    n, _, k = lm_independent(ch, n, lm_iters)
     iters += k
     if robust:
         for _ in range(robust_iters):
             ch.set_weights(robust_coefficient_weights(ch, n, w0, floor))
-            n, _, k = lm_independent(ch, n, max_iter)
+            n, _, k = lm_independent(ch, n, lm_iters)
             iters += k
     return n, ch, iters
 
 
-def refine_shared_chunk(B, y, w0, n, lights, order, scale, c, iters, irls, search_angles, search_azimuths, work_dtype,
+def refine_shared_chunk(B, y, w0, n, lights, order, scale, c, iters, irls, search_angles, search_azimuths, wdt,
                           step_tol: float = 2e-4):
     """Per-pixel IRLS + Levenberg–Marquardt on the normals with the basis BRDFs fixed.
 
@@ -83,18 +84,15 @@ def refine_shared_chunk(B, y, w0, n, lights, order, scale, c, iters, irls, searc
     Returns normals, robust weights, mixing weights ``(p, M, C)`` (in ``y``'s dtype) and the iterations used.
     """
     out_dt = y.dtype
-    des = MixedDesign(B.to(work_dtype), lights.to(work_dtype), order)
-    yd, w0d, nd = y.to(work_dtype).transpose(1, 2).contiguous(), w0.to(work_dtype), n.to(work_dtype)  # yd (p, C, L)
-    h = fd_step(work_dtype)
+    des = MixedDesign(B.to(wdt), lights.to(wdt), order)
+    yd, w0d, nd = y.to(wdt).transpose(1, 2).contiguous(), w0.to(wdt), n.to(wdt)  # yd (p, C, L)
+    h = fd_step(wdt)
     Psi = des(nd)
     w = w0d.clone()
 
     active = torch.ones(nd.shape[0], dtype=torch.bool, device=nd.device)
     used = 0
-    for it in range(iters):
-        idx = active.nonzero().squeeze(1)
-        if idx.numel() == 0:
-            break
+    for it, idx in enumerate(active_rows(active, iters)):
         used += 1
         yi, ni, Pi = yd[idx], nd[idx], Psi[idx]
         wi, _ = irls_weights(Pi, yi, w[idx], w0d[idx], scale, c, irls)
@@ -156,7 +154,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
     d, w0 = obs.data, obs.weights
     P, L, C = d.y.shape
     dev, dt = d.y.device, d.dtype
-    wdt = dt if cfg.work_dtype is None else cfg.work_dtype
+    wdt = cfg.work(dt)
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
     profile = ridge_profile(cfg.order, dt, dev)
     shared = basis is not None
@@ -174,7 +172,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
     def run(sl: slice) -> None:
         if shared:
             n, w, Wt, k = refine_shared_chunk(
-                basis, d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.max_iter,
+                basis, d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, cfg.order, scale, cfg.cauchy_c, cfg.iterations,
                 _PIXEL_IRLS, cfg.search_angles, cfg.search_azimuths, wdt,
             )
             n = torch.nn.functional.normalize(n, dim=-1)
@@ -183,7 +181,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
         else:
             n, ch, k = refine_independent_chunk(
                 d.y[sl].to(dt), w0[sl].to(dt), n_start[sl], d.lights, view, cfg.order, profile, cfg.ridge, cfg.robust,
-                cfg.robust_iters, cfg.search_angles, cfg.search_azimuths, cfg.max_iter, obs.sigma_y,
+                cfg.robust_iters, cfg.search_angles, cfg.search_azimuths, cfg.iterations, obs.sigma_y,
             )
             w = ch.w
             assert ridge_diag is not None

@@ -1,16 +1,23 @@
-"""Validated settings of the HSH solver, shared by its stages (see :func:`~torch_hsh.ps.solve_hsh`)."""
+"""The options of the HSH solver, each defined once: :class:`Settings` (see :func:`~torch_hsh.ps.solve_hsh`).
+
+Every field of :class:`Settings` holds its default, its check, its doc and (for
+the few the command line exposes) its ``torch-hsh ps`` flag, in the field's
+metadata; :class:`Settings` checks itself from that metadata when built, the
+stages read it, and :func:`~torch_hsh.ps.solve_hsh` and the CLI build their
+option lists from it. A new option is one field here plus the stage that reads it.
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields, replace
 import math
 import numbers
 from typing import Optional, Tuple, Union
 
 import torch
 
-from .._checks import check_order
+from .._checks import check_order, check_shape
 
-__all__ = ["Settings", "DEFAULT_ORDER", "DEFAULT_MATERIALS", "DEFAULT_BASIS_RIDGE", "CAUCHY_C", "AUTO"]
+__all__ = ["Settings", "option_docs", "DEFAULT_ORDER", "DEFAULT_MATERIALS", "DEFAULT_BASIS_RIDGE", "CAUCHY_C", "AUTO"]
 
 #: Default basis order: 3 (K = 20 functions per channel). With the view fixed
 #: (orthographic camera) only (P+1)(P+2)/2 = 10 combinations per channel are
@@ -41,116 +48,113 @@ AUTO = "auto"
 CAUCHY_C = 2.385
 
 
-@dataclass(frozen=True)
-class Settings:
-    """Every option of :func:`~torch_hsh.ps.solve_hsh`, validated (see its docstring for the meaning)."""
+def _option(default, doc: str, check=None, cli=None, compare: bool = True, internal: bool = False):
+    """One field of :class:`Settings`: its default, its doc, its check and its ``torch-hsh ps`` flag.
 
-    order: int
-    materials: Union[int, str, None]
-    ridge: float
-    search_angles: Tuple[float, ...]
-    search_azimuths: int
-    max_iter: int
-    robust: bool
-    robust_iters: int
-    calibration_pixels: int
-    calibration_rounds: int
-    calibration_starts: Tuple[str, ...]
-    nonneg: bool
-    chunk_size: Optional[int]
-    work_dtype: Optional[torch.dtype]
-    seed: int
-    progress: bool
-    cauchy_c: float = CAUCHY_C
-    refinement_passes: int = 2
-    #: Relative ridge on the shared basis BRDFs (see :data:`DEFAULT_BASIS_RIDGE`).
-    basis_ridge: float = DEFAULT_BASIS_RIDGE
-    #: True when ``chunk_size`` was chosen by :func:`resolve_chunk` (it may then shrink on out-of-memory).
-    chunk_auto: bool = False
-
-    @property
-    def chunk(self) -> int:
-        """Pixels per chunk; ``solve_hsh`` resolves ``chunk_size=None`` per device (:func:`resolve_chunk`) first."""
-        if self.chunk_size is None:
-            raise RuntimeError("chunk_size=None must be resolved with resolve_chunk() before the per-pixel stages")
-        return self.chunk_size
-
-    @classmethod
-    def validated(
-        cls,
-        order,
-        materials,
-        ridge,
-        search_angles,
-        search_azimuths,
-        max_iter,
-        robust,
-        robust_iters,
-        calibration_pixels,
-        calibration_rounds,
-        calibration_starts,
-        nonneg,
-        chunk_size,
-        work_dtype,
-        seed,
-        progress,
-        refinement_passes=2,
-        basis_ridge=DEFAULT_BASIS_RIDGE,
-    ) -> "Settings":
-        order = check_order(order)
-        materials = _check_materials(materials)
-        if not ridge > 0:
-            raise ValueError(f"`ridge` must be > 0 (it keeps the rank-deficient normal equations solvable), got {ridge}")
-        if chunk_size is not None and (isinstance(chunk_size, bool) or not isinstance(chunk_size, numbers.Integral)
-                                       or chunk_size < 1):
-            raise ValueError(f"`chunk_size` must be an integer >= 1 or None (chosen per device), got {chunk_size!r}")
-        if max_iter is None:
-            max_iter = 15 if materials is None else 16
-        if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 0:
-            raise ValueError(f"`max_iter` must be an integer >= 0, got {max_iter!r}")
-        bad = [s_ for s_ in calibration_starts if s_ not in CALIBRATION_STARTS]
-        if isinstance(calibration_starts, str) or bad:
-            raise ValueError(
-                f"`calibration_starts` must be a sequence of 'lambertian' / 'independent' / 'flattened', "
-                f"got {calibration_starts!r}"
-            )
-        if isinstance(refinement_passes, bool) or not isinstance(refinement_passes, int) or not 1 <= refinement_passes <= 5:
-            raise ValueError(f"`refinement_passes` must be an integer in [1, 5], got {refinement_passes!r}")
-        if isinstance(basis_ridge, bool) or not isinstance(basis_ridge, numbers.Real) \
-                or not math.isfinite(basis_ridge) or not 0 < float(basis_ridge) <= 1:
-            raise ValueError(f"`basis_ridge` must be a number in (0, 1] (relative to the mean diagonal of the "
-                             f"basis BRDFs' normal equations), got {basis_ridge!r}")
-        if work_dtype is not None and work_dtype not in (torch.float32, torch.float64):
-            raise ValueError(f"`work_dtype` must be torch.float32, torch.float64 or None, got {work_dtype!r}")
-        if int(calibration_pixels) < 1 or int(calibration_rounds) < 0:
-            raise ValueError(
-                f"`calibration_pixels` must be >= 1 and `calibration_rounds` >= 0, got {calibration_pixels}, "
-                f"{calibration_rounds}"
-            )
-        return cls(
-            order=order,
-            materials=materials,
-            ridge=ridge,
-            search_angles=tuple(search_angles),
-            search_azimuths=search_azimuths,
-            max_iter=int(max_iter),
-            robust=robust,
-            robust_iters=robust_iters,
-            calibration_pixels=int(calibration_pixels),
-            calibration_rounds=int(calibration_rounds),
-            calibration_starts=tuple(calibration_starts),
-            nonneg=nonneg,
-            chunk_size=None if chunk_size is None else int(chunk_size),
-            work_dtype=work_dtype,
-            seed=seed,
-            progress=progress,
-            refinement_passes=int(refinement_passes),
-            basis_ridge=float(basis_ridge),
-        )
+    ``check(value, settings) -> value`` raises ``ValueError`` naming the option (``settings``: the
+    fields before this one already checked, the later ones as given); it returns the value to keep.
+    ``cli``: ``flag``, ``help`` and ``type`` (``("int", lo, hi)``, ``("float", lo, hi, lo_open)``,
+    ``("materials",)``) or ``const`` (a switch that sets the option to that value).
+    ``internal``: set by the pipeline, not an option of :func:`~torch_hsh.ps.solve_hsh`.
+    """
+    return field(default=default, compare=compare,
+                 metadata={"doc": doc, "check": check, "cli": cli, "internal": internal})
 
 
-def _check_materials(materials):
-    """``materials``: an integer in [1, 8], ``"auto"`` or ``None``; anything else is a ValueError naming it."""
+def _check_refinement_passes(v, s):
+    if isinstance(v, bool) or not isinstance(v, numbers.Integral) or not 1 <= v <= 5:
+        raise ValueError(f"`refinement_passes` must be an integer in [1, 5], got {v!r}")
+    return int(v)
+
+
+def _check_ridge(v, s):
+    if not v > 0:
+        raise ValueError(f"`ridge` must be > 0 (it keeps the rank-deficient normal equations solvable), got {v}")
+    return v
+
+
+def _check_max_iter(v, s):
+    if v is not None and (isinstance(v, bool) or int(v) != v or v < 0):
+        raise ValueError(f"`max_iter` must be an integer >= 0, got {v!r}")
+    return None if v is None else int(v)
+
+
+def _check_calibration_pixels(v, s):
+    if int(v) < 1:
+        raise ValueError(f"`calibration_pixels` must be >= 1, got {v}")
+    return int(v)
+
+
+def _check_calibration_rounds(v, s):
+    if int(v) < 0:
+        raise ValueError(f"`calibration_rounds` must be >= 0, got {v}")
+    return int(v)
+
+
+def _check_calibration_starts(v, s):
+    if isinstance(v, str) or any(s_ not in CALIBRATION_STARTS for s_ in v):
+        raise ValueError(f"`calibration_starts` must be a sequence of 'lambertian' / 'independent' / 'flattened', "
+                         f"got {v!r}")
+    return tuple(v)
+
+
+def check_dark_fraction(v, s=None):
+    """``dark_fraction``: a number in ``[0, 1)``."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < 1.0:
+        raise ValueError(f"`dark_fraction` must be a number in [0, 1), got {v!r}")
+    return v
+
+
+def _level(name: str, bound: str):
+    """A check: ``None`` (estimated from the data) or a finite number ``>= 0`` / ``> 0`` (``bound``)."""
+
+    def check(v, s=None):
+        if v is None:
+            return v
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ValueError(f"`{name}` must be None (estimated) or a finite number, got {v!r}")
+        if (bound == ">= 0" and v < 0) or (bound == "> 0" and v <= 0):
+            raise ValueError(f"`{name}` must be {bound}, got {v!r}")
+        return v
+
+    return check
+
+
+check_noise_sigma = _level("noise_sigma", ">= 0")
+check_saturation = _level("saturation", "> 0")
+
+
+def _check_chunk_size(v, s):
+    if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1):
+        raise ValueError(f"`chunk_size` must be an integer >= 1 or None (chosen per device), got {v!r}")
+    return None if v is None else int(v)
+
+
+def _check_work_dtype(v, s):
+    if v is not None and v not in (torch.float32, torch.float64):
+        raise ValueError(f"`work_dtype` must be torch.float32, torch.float64 or None, got {v!r}")
+    return v
+
+
+def _check_cast_shadows(v, s):
+    if isinstance(v, bool) or int(v) != v or v < 0:
+        raise ValueError(f"`cast_shadows` must be an integer >= 0 (rounds of the shadow loop), got {v!r}")
+    return v
+
+
+def _check_shadow_bias(v, s):
+    if not (isinstance(v, (int, float)) and v >= 0):
+        raise ValueError(f"`shadow_bias` must be a number >= 0 (pixels), got {v!r}")
+    return v
+
+
+def _check_materials(materials, s=None):
+    """``materials``: an integer in [1, 8], ``"auto"`` or ``None``; anything else is a ValueError naming it.
+
+    With ``basis`` given, the basis decides (see :func:`_check_basis`).
+    """
+    if s is not None and s.basis is not None:
+        return materials
     if materials is None or (isinstance(materials, str) and materials == AUTO):
         return materials
     if (
@@ -165,6 +169,240 @@ def _check_materials(materials):
             f"BRDFs), got {materials!r}"
         )
     return int(materials)
+
+
+def _check_basis(basis, s):
+    """``basis``: ``(M, K)`` finite rows for the ``order``; it fixes the shared model (``materials`` not None/"auto")."""
+    if basis is None:
+        return basis
+    from ..kernel import num_isotropic
+
+    K = num_isotropic(s.order)
+    M = check_shape(basis, "basis", ("M", K))["M"]  # K for the order
+    if not 1 <= M <= 8:
+        raise ValueError(f"`basis` must have M in 1..8 rows (basis BRDFs), got {M}")
+    if not basis.is_floating_point() or not bool(torch.isfinite(basis).all()) or bool((basis.norm(dim=-1) == 0).any()):
+        raise ValueError("`basis` must hold finite floating-point values and no zero row")
+    if s.materials is None or isinstance(s.materials, str):
+        raise ValueError(f"`basis` fixes the shared model with M = {M} basis BRDFs; `materials` must not be "
+                         f"None or 'auto' with it, got {s.materials!r}")
+    return basis
+
+
+def _check_robust_scale(v, s):
+    if v is None:
+        return v
+    if s.basis is None:
+        raise ValueError("`robust_scale` is only used together with `basis`")
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise ValueError(f"`robust_scale` must be a finite number > 0 (image units), got {v!r}")
+    return v
+
+
+def _check_basis_ridge(v, s):
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not 0 < float(v) <= 1:
+        raise ValueError(f"`basis_ridge` must be a number in (0, 1] (relative to the mean diagonal of the "
+                         f"basis BRDFs' normal equations), got {v!r}")
+    return float(v)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Every option of :func:`~torch_hsh.ps.solve_hsh`, checked when built.
+
+    ``Settings(**options)`` raises ``ValueError`` (naming the option) for a
+    bad value and ``TypeError`` for an unknown name. Use it to run several
+    solves with the same options (``solve_hsh(..., settings=s)``) or to
+    change one (``dataclasses.replace(s, order=4)``, checked again).
+
+    Options (the same list as :func:`~torch_hsh.ps.solve_hsh`; the defaults are those of the fields):
+
+    {options}
+    """
+
+    order: int = _option(DEFAULT_ORDER, "basis order ``P`` (default 3: ``K = 20`` coefficients per channel).",
+                         lambda v, s: check_order(v),
+                         cli={"flag": "--order", "type": ("int", 0, 12),
+                              "help": "HSH order (default torch_hsh.ps.DEFAULT_ORDER)"})
+    materials: Union[int, str, None] = _option(
+        DEFAULT_MATERIALS,
+        """number ``M`` of shared basis BRDFs (1..8), ``"auto"`` to
+        choose ``M`` in 1..4 from the data, or ``None`` for independent
+        per-pixel BRDFs. ``"auto"`` (:mod:`torch_hsh.ps.materials`)
+        cross-validates held-out lights on up to 256 pixels of the
+        calibration subset: for each ``M``, a short calibration on every
+        light fixes the subset normals, then the basis BRDFs and mixing
+        weights are refitted without each of 3 folds of lights (interleaved
+        in azimuth) and predict them; the criterion is the mean Cauchy loss
+        ``log(1 + (r / (c s))^2)`` of the held-out residuals at one scale
+        ``s`` for every ``M``. It keeps the smallest ``M`` within one
+        standard error (over pixels) of the best (the one-standard-error
+        rule), then calibrates that ``M`` as usual. ``info`` gets
+        ``materials_chosen``, ``materials_criterion`` (one value per
+        ``M = 1..4``, lower is better), ``materials_criterion_se``,
+        ``materials_criterion_scale`` and ``time_materials_s``. It counts
+        the basis BRDFs needed to predict other lights at this ``order``:
+        more than the physical materials when the order truncates their
+        lobes. Needs at least 6 lights.""",
+        _check_materials,
+        cli={"flag": "--materials", "type": ("materials",),
+             "help": "shared basis BRDFs of the HSH solver (default torch_hsh.ps.DEFAULT_MATERIALS; "
+                     "0: independent BRDF per pixel)"})
+    init: Optional[torch.Tensor] = _option(
+        None, "optional ``(*S, 3)`` starting normals (default: robust Lambertian).", compare=False)
+    ridge: float = _option(0.1, """relative ridge strength ``lambda`` on the per-pixel coefficients
+        (independent model) or on the per-pixel residual ``delta``
+        (shared model); see the module docstring.""", _check_ridge)
+    search_angles: Tuple[float, ...] = _option(
+        (8.0, 16.0), "cone angles in degrees of the coarse candidate search (empty: no search).",
+        lambda v, s: tuple(v))
+    search_azimuths: int = _option(6, "candidates per cone angle.")
+    max_iter: Optional[int] = _option(None, """Levenberg–Marquardt iterations per stage (independent model,
+        default 15) or IRLS-LM iterations of the per-pixel pass (shared
+        model, default 16 per pass; a pixel stops earlier once its normal is still).""", _check_max_iter)
+    robust: bool = _option(True, "independent model only: run Cauchy IRLS stages (``robust_iters`` of them).")
+    robust_iters: int = _option(2, "independent model only: number of reweighting stages.")
+    calibration_pixels: int = _option(2048, "shared model: size of the pixel subset used to fit ``B``.",
+                                      _check_calibration_pixels)
+    calibration_rounds: int = _option(8, "shared model: alternation rounds on that subset.",
+                                      _check_calibration_rounds)
+    calibration_starts: Tuple[str, ...] = _option(
+        ("lambertian", "independent"),
+        """shared model: starts of the calibration, any of
+        ``"lambertian"`` (robust Lambertian normals, always used),
+        ``"independent"`` (normals of the independent model on the subset)
+        and ``"flattened"`` (opt-in: two more starts, the Lambertian normals
+        with their slopes scaled by 0.6 and 0.8, against the steepening
+        that specular reflection gives a Lambertian fit; about +25 % time,
+        see ``docs/photometric_stereo.md`` for when it helps); the
+        calibration with the smallest Cauchy loss of the subset residuals
+        at a common scale is kept (``info["calibration_start"]``: its
+        index in that order).""",
+        _check_calibration_starts,
+        cli={"flag": "--flattened-starts", "const": ("lambertian", "independent", "flattened"),
+             "help": "two more calibration starts with flattened Lambertian normals (opt-in, about +25%% time; "
+                     "see docs/photometric_stereo.md)"})
+    dark_fraction: float = _option(0.05, "dark threshold, see :func:`~torch_hsh.ps.observation_weights`.",
+                                   check_dark_fraction)
+    noise_sigma: Optional[float] = _option(
+        None, "raw noise level (``None``: estimated), see :func:`~torch_hsh.ps.observation_weights`.",
+        check_noise_sigma)
+    saturation: Optional[float] = _option(
+        None, "raw saturation level (``None``: detected), see :func:`~torch_hsh.ps.observation_weights`.",
+        check_saturation)
+    nonneg: bool = _option(True, "apply the non-negativity safeguard to the final coefficients.")
+    chunk_size: Optional[int] = _option(None, """pixels per batch of the per-pixel passes (bounded memory).
+        ``None`` (default): 8192 on the CPU; on a GPU, where fewer and
+        larger batches are faster, the largest that keeps a batch within a
+        quarter of the free device memory (8192 to 262144, see
+        :func:`~torch_hsh.ps.settings.resolve_chunk`), halved and retried
+        if a batch still runs out of device memory. The results do not
+        depend on it; ``info["chunk_size"]`` reports the one used.""", _check_chunk_size)
+    dtype: Optional[torch.dtype] = _option(torch.float64, """dtype of the outputs and of the coefficient fits (default
+        float64; ``None``: the images' dtype).""")
+    work_dtype: Optional[torch.dtype] = _option(torch.float32, """shared model: dtype of the per-pixel normal
+        iterations (default float32, about 3x faster than float64 with the same
+        accuracy; ``None``: ``dtype``).""", _check_work_dtype)
+    seed: int = _option(0, "seed of the calibration subset.")
+    progress: bool = _option(False, """show tqdm progress bars (the robust Lambertian start normals, the
+        calibration starts, the refinement's and the coefficient fit's chunks of pixels).""")
+    valid: Optional[torch.Tensor] = _option(None, """optional ``(L, H, W)`` / ``(L, P)`` bool: False excludes an
+        observation (for example one known to be in a cast shadow). Non-finite
+        and negative observations are always excluded; an excluded
+        observation never influences another pixel.""", compare=False)
+    cast_shadows: int = _option(0, """rounds of the cast-shadow loop (default 0: off): integrate
+        the normals, march the lights over the depth, mark the occluded
+        observations invalid, solve again (see :mod:`torch_hsh.ps.shadows`;
+        needs ``(L, H, W, C)`` images).""", _check_cast_shadows,
+        cli={"flag": "--cast-shadows", "type": ("int", 0, 5),
+             "help": "rounds of the cast-shadow loop of the HSH solver (default 0: off; see torch_hsh.ps.shadows)"})
+    shadow_bias: float = _option(0.25, """height in pixels an occluder must rise above a light ray
+        to cast a shadow in that loop (depth-noise margin).""", _check_shadow_bias)
+    basis: Optional[torch.Tensor] = _option(None, """optional ``(M, K)`` basis BRDFs of the shared model to use as
+        they are, for example ``basis_brdfs`` of an earlier result on the
+        same object (``K`` must match ``order``): the calibration (stage 3)
+        is skipped and the number of materials is ``M`` (an integer
+        ``materials`` is overridden; ``None`` and ``"auto"`` are errors).
+        The cast-shadow loop uses it to keep the first solve's basis.""", _check_basis, compare=False)
+    robust_scale: Optional[float] = _option(None, """with ``basis``: the robust residual scale in image units
+        (``info["robust_scale"]`` of that earlier result); ``None``
+        estimates it from the calibration subset at the start normals.""", _check_robust_scale)
+    refinement_passes: int = _option(2, """shared model: passes of the per-pixel refinement
+        (stage 4). Every pass after the first restarts from the previous
+        pass's normals, with fresh robust weights and a new cone search
+        around them (default 2; measured gains of 0.01–0.7 deg on every
+        scene of ``docs/photometric_stereo.md``, for about 30–60 % more time;
+        ``refinement_passes=1, max_iter=8`` is the single pass of earlier versions). Ignored by the
+        independent model.""", _check_refinement_passes)
+    basis_ridge: float = _option(DEFAULT_BASIS_RIDGE, """shared model: relative ridge on the basis BRDFs ``B``
+        (``basis_ridge`` x the mean diagonal of their normal equations, times
+        the order profile ``p(p+1)/2 + r(r+1)/2``: a smoothness penalty).
+        It conditions the calibration: the normals' elevations and the
+        basis BRDFs trade off along a nearly flat valley of the loss, and
+        the ridge picks the point on it. Raising it from 1e-3 to 3e-3
+        stopped the calibration flipping between basins with the subset
+        (``seed``) on every scene measured; every larger value smooths the
+        lobes more (less accurate on sharp specular objects), and beyond
+        3e-3 the seed spread no longer falls steadily. Default ``3e-3`` (:data:`DEFAULT_BASIS_RIDGE`;
+        ``1e-3`` before 2026-11-29); the measured trade-off is
+        in ``docs/photometric_stereo.md``. ``info["basis_ridge"]`` records it.""", _check_basis_ridge,
+        cli={"flag": "--basis-ridge", "type": ("float", 0.0, 1.0, True),
+             "help": "relative ridge on the shared basis BRDFs (default torch_hsh.ps.DEFAULT_BASIS_RIDGE, 3e-3); "
+                     "1e-3 fits sharp specular lobes better but lets the result depend on the calibration seed "
+                     "(see docs/photometric_stereo.md)"})
+    cauchy_c: float = _option(CAUCHY_C, "Cauchy constant of every robust reweighting.", internal=True)
+    chunk_auto: bool = _option(False, "True when ``chunk_size`` was chosen by :func:`resolve_chunk` (it may then "
+                                      "shrink on out-of-memory).", internal=True)
+
+    def __post_init__(self):
+        for f in fields(self):  # in field order: a check sees the earlier fields checked
+            check = f.metadata["check"]
+            if check is not None:
+                object.__setattr__(self, f.name, check(getattr(self, f.name), self))
+        if self.basis is not None:  # the basis fixes the number of materials
+            object.__setattr__(self, "materials", int(self.basis.shape[0]))
+
+    @property
+    def iterations(self) -> int:
+        """``max_iter``, or its default for the model: 15 (independent) or 16 (shared)."""
+        if self.max_iter is None:
+            return 15 if self.materials is None else 16
+        return self.max_iter
+
+    def work(self, dtype: torch.dtype) -> torch.dtype:
+        """The dtype of the per-pixel normal iterations for data in ``dtype``: ``work_dtype``, or ``dtype``."""
+        return dtype if self.work_dtype is None else self.work_dtype
+
+    def chunked(self, y: torch.Tensor, dtype: torch.dtype) -> "Settings":
+        """These settings with ``chunk_size`` resolved for the observations ``y (P, L, C)`` computed in ``dtype``
+        (:func:`resolve_chunk`; ``chunk_auto`` records whether it was chosen here)."""
+        from ..kernel import num_isotropic
+
+        chunk = resolve_chunk(self.chunk_size, y.device, y.shape[1], num_isotropic(self.order), self.materials is None,
+                              torch.empty(0, dtype=self.work(dtype)).element_size(),
+                              torch.empty(0, dtype=dtype).element_size())
+        return replace(self, chunk_size=chunk, chunk_auto=self.chunk_size is None)
+
+    @property
+    def chunk(self) -> int:
+        """Pixels per chunk; ``solve_hsh`` resolves ``chunk_size=None`` per device (:func:`resolve_chunk`) first."""
+        if self.chunk_size is None:
+            raise RuntimeError("chunk_size=None must be resolved with resolve_chunk() before the per-pixel stages")
+        return self.chunk_size
+
+
+def option_docs(indent: str = "    ") -> str:
+    """The ``name: doc`` list of the options of :class:`Settings` (for docstrings), one entry per field."""
+    out = []
+    for f in fields(Settings):
+        if f.metadata["internal"]:
+            continue
+        lines = [ln.strip() for ln in f.metadata["doc"].splitlines()]
+        out.append(f"{f.name}: " + f"\n{indent}    ".join(lines))
+    return f"\n{indent}".join(out)
+
+
+Settings.__doc__ = Settings.__doc__.replace("{options}", option_docs())
 
 
 #: Accepted names in ``calibration_starts`` (see :func:`~torch_hsh.ps.solve_hsh`).

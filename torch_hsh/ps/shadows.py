@@ -1,6 +1,6 @@
 """Cast-shadow-aware photometric stereo: the surface explains which observations are shadowed.
 
-Around the six-stage solve (:mod:`torch_hsh.ps.hsh`) this module runs a short
+Around the six-stage solve (:func:`torch_hsh.ps.pipeline.run_stages`) this module runs a short
 loop (``solve_hsh(..., cast_shadows=R)``):
 
 1. solve (all valid observations);
@@ -28,9 +28,13 @@ second per-pixel pass, not the shadows; hence off by default.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 import torch
+
+from .calibration import CALIBRATION_INFO
+from .settings import Settings
 
 __all__ = ["CHANGE_TOLERANCE", "shadow_loop"]
 
@@ -38,12 +42,14 @@ __all__ = ["CHANGE_TOLERANCE", "shadow_loop"]
 CHANGE_TOLERANCE = 1e-3
 
 
-def shadow_loop(solve: Callable, images: torch.Tensor, lights: torch.Tensor, mask, valid, rounds: int,
-                bias: float, init, **kwargs):
-    """Run ``solve(images, lights, mask=..., valid=..., init=..., **kwargs)`` with cast shadows removed.
+def shadow_loop(solve: Callable, images: torch.Tensor, lights: torch.Tensor, intensities, mask, cfg: Settings):
+    """Run ``solve(images, lights, intensities, mask, cfg)`` with cast shadows removed, ``cfg.cast_shadows`` rounds.
 
-    ``images (L, H, W, C)`` (an image layout is required: the visibility comes
-    from a depth map). Returns the last result; its ``info`` gains
+    ``solve`` runs the stages (:func:`~torch_hsh.ps.pipeline.run_stages`);
+    each re-solve gets ``cfg`` with ``valid``, ``init`` (and, for the shared
+    model, ``basis``, ``robust_scale`` and ``materials``) replaced. ``images
+    (L, H, W, C)`` (an image layout is required: the visibility comes from a
+    depth map). Returns the last result; its ``info`` gains
     ``shadow_rounds``, ``shadowed_fraction`` (occluded fraction of the
     observations inside the mask) and ``shadow_time_s``.
     """
@@ -51,20 +57,17 @@ def shadow_loop(solve: Callable, images: torch.Tensor, lights: torch.Tensor, mas
 
     from ..surface import integrate_normals, light_visibility
 
-    if isinstance(rounds, bool) or int(rounds) != rounds or rounds < 0:
-        raise ValueError(f"`cast_shadows` must be an integer >= 0 (rounds of the shadow loop), got {rounds!r}")
     if images.dim() != 4:
         raise ValueError(f"`cast_shadows` needs images of shape (L, H, W, C), got {tuple(images.shape)}")
-    if not (isinstance(bias, (int, float)) and bias >= 0):
-        raise ValueError(f"`shadow_bias` must be a number >= 0 (pixels), got {bias!r}")
-    res = solve(images, lights, mask=mask, valid=valid, init=init, **kwargs)
+    valid, bias = cfg.valid, cfg.shadow_bias
+    res = solve(images, lights, intensities, mask, cfg)
     first_info = dict(res.info)
     m = res.mask
     occluded = torch.zeros(images.shape[:3], dtype=torch.bool, device=images.device)
     n_obs = max(int(m.sum()) * images.shape[0], 1)
     done = 0
     t_shadow = 0.0
-    for _ in range(int(rounds)):
+    for _ in range(int(cfg.cast_shadows)):
         t0 = time.perf_counter()
         n = res.normals.detach().to(torch.float64).cpu()
         depth = integrate_normals(n, m.cpu())
@@ -76,7 +79,7 @@ def shadow_loop(solve: Callable, images: torch.Tensor, lights: torch.Tensor, mas
             break
         occluded = new
         v = ~occluded if valid is None else (valid.to(images.device).bool() & ~occluded)
-        kw = dict(kwargs)
+        kw = dict(valid=v, init=res.normals.to(images.dtype))
         if getattr(res, "basis_brdfs", None) is not None:
             # keep the first solve's basis BRDFs and robust scale: the visibility changes a few
             # observations, not the object's materials, and a fresh calibration from other start
@@ -84,12 +87,12 @@ def shadow_loop(solve: Callable, images: torch.Tensor, lights: torch.Tensor, mas
             # (``materials`` then follows the basis: "auto" was resolved by the first solve)
             kw.update(basis=res.basis_brdfs, robust_scale=float(res.info["robust_scale"]),
                       materials=int(res.basis_brdfs.shape[0]))
-        res = solve(images, lights, mask=mask, valid=v, init=res.normals.to(images.dtype), **kw)
+        res = solve(images, lights, intensities, mask, dataclasses.replace(cfg, **kw))
         done += 1
     if done:
         # the re-solves reuse the first solve's calibration: report that calibration, not "basis given"
         for k, v in first_info.items():
-            if k.startswith(("calibration_", "materials", "basis_ridge")):
+            if k.startswith(CALIBRATION_INFO):
                 res.info[k] = v
         res.info.pop("basis_given", None)
     res.info["shadow_rounds"] = float(done)

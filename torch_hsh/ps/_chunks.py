@@ -1,13 +1,11 @@
-"""Small helpers shared by the photometric-stereo solvers: pixel scatter, row sums, angular error, tangent frames."""
+"""Pixel chunking of the photometric-stereo solvers: row sums and passes in bounded chunks, pixel scatter."""
 from __future__ import annotations
 
 from typing import Callable, Optional, Tuple
 
 import torch
 
-from .._checks import check_dirs
-
-__all__ = ["scatter_pixels", "row_sum", "angular_error", "tangent_frame", "for_chunks"]
+__all__ = ["ROW_CHUNK", "MIN_CHUNK", "scatter_pixels", "row_sum", "for_chunks"]
 
 #: Rows per chunk of :func:`row_sum` (and of other per-pixel passes over ``(P, L)`` tensors).
 ROW_CHUNK = 65536
@@ -66,43 +64,3 @@ def scatter_pixels(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     out = torch.zeros(mask.numel(), *values.shape[1:], dtype=values.dtype, device=values.device)
     out[mask.reshape(-1)] = values
     return out.reshape(*mask.shape, *values.shape[1:])
-
-
-def angular_error(
-    normals: torch.Tensor, reference: torch.Tensor, mask: Optional[torch.Tensor] = None
-) -> torch.Tensor:
-    """Per-pixel angle in degrees between two normal maps: ``arccos(clamp(n . n_ref, -1, 1))``.
-
-    Args:
-        normals: ``(..., 3)`` (normalised here).
-        reference: ``(..., 3)`` same shape.
-        mask: optional ``(...)`` bool; the error is 0 outside.
-
-    Returns:
-        ``(...)`` angles in degrees.
-
-    Example:
-        >>> angular_error(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([[0.0, 1.0, 0.0]]))
-        tensor([90.])
-    """
-    check_dirs(normals, "normals")
-    check_dirs(reference, "reference")
-    if normals.shape != reference.shape:
-        raise ValueError(f"`normals` {tuple(normals.shape)} and `reference` {tuple(reference.shape)} must have the same shape")
-    a = torch.nn.functional.normalize(normals, dim=-1)
-    b = torch.nn.functional.normalize(reference.to(normals.dtype), dim=-1)
-    ang = torch.rad2deg(torch.arccos((a * b).sum(-1).clamp(-1.0, 1.0)))
-    if mask is not None:
-        ang = torch.where(mask.to(ang.device).bool(), ang, torch.zeros_like(ang))
-    return ang
-
-
-def tangent_frame(n: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Two unit tangents orthogonal to unit normals ``n (P, 3)`` (Duff et al. 2017, branchless)."""
-    x, y, z = n.unbind(-1)
-    sign = torch.where(z >= 0, 1.0, -1.0).to(z.dtype)
-    a = -1.0 / (sign + z)
-    b = x * y * a
-    t1 = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], dim=-1)
-    t2 = torch.stack([b, sign + y * y * a, -y], dim=-1)
-    return t1, t2
