@@ -72,10 +72,12 @@ def prepare(name: str) -> Path:
 
 
 def _not_killed(work: Path):
+    """Mutants that were run and not killed (a mutant never run, "not checked", is no survivor: naming it
+    would turn a retest into a full run)."""
     r = subprocess.run([sys.executable, "-m", "mutmut", "results", "--all", "true"], cwd=work,
                        capture_output=True, text=True)
     return [ln.split(":", 1)[0].strip() for ln in r.stdout.splitlines()
-            if ":" in ln and ln.rsplit(":", 1)[1].strip() != "killed"]
+            if ":" in ln and ln.rsplit(":", 1)[1].strip() not in ("killed", "not checked")]
 
 
 def summarize(work: Path) -> str:
@@ -107,6 +109,9 @@ def main(argv=None) -> int:
         if args.fresh and (work / "mutants").exists():
             shutil.rmtree(work / "mutants")
         names = _not_killed(work) if args.retest_survivors and (work / "mutants").exists() else []
+        if args.retest_survivors and not names:  # no names would make mutmut run every mutant
+            print(f"{name}: no survivors to retest", flush=True)
+            continue
         t0 = time.perf_counter()
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
         rc = subprocess.run([sys.executable, "-m", "mutmut", "run", "--max-children", str(args.max_children), *names],
