@@ -904,13 +904,6 @@ def test_without_the_c_kernels_values_and_gradients_are_unchanged(no_native):
     assert torch.autograd.gradcheck(lambda a: hsh(a, 4), (x,))
 
 
-_LINKED_INPUTS_BUG = (
-    "auto backend: the create_graph backward of _IsoCore / _IsoDirs / _PairProducts differentiates the torch "
-    "kernel with respect to its saved inputs with autograd.grad, which also follows the paths between those "
-    "inputs (sio and rho are computed from cos_i; wi is wo; Hi is Ho), so the first derivative is counted twice"
-)
-
-
 def _cosines_entry(zi, zo, cd, order):
     return helmholtz_isotropic_cosines(zi[:, 2], zo[:, 2], 0.5 * (cd[:, 0] - cd[:, 1]), order)
 
@@ -920,11 +913,10 @@ def _cosines_entry(zi, zo, cd, order):
     (helmholtz_isotropic, 3, 1, True), (helmholtz_anisotropic, 2, 1, True),
     (helmholtz_isotropic_world, 3, 3, True), (_cosines_entry, 3, 3, True),
 ])
-def test_first_derivative_is_the_same_with_and_without_create_graph(request, backend, fn, order, nargs, linked):
+def test_first_derivative_is_the_same_with_and_without_create_graph(backend, fn, order, nargs, linked):
     """create_graph=True (double backward) re-derives the first derivative on another path: it must be the same.
-    ``nargs == 1``: the same tensor for wi and wo."""
-    if linked and backend == "auto":
-        request.applymarker(pytest.mark.xfail(reason=_LINKED_INPUTS_BUG, strict=True))
+    ``nargs == 1``: the same tensor for wi and wo. ``linked``: the kernel's saved inputs depend on each other
+    (``wi is wo``; the cosines computed from one normal), which once counted the first derivative twice."""
     xs = [_hemi(6, seed=93 + k) for k in range(nargs)]
     xs[0][0] = torch.tensor([0.3, -0.4, -0.5], dtype=F64)  # below the horizon: zero, with zero gradient
     xs = [x.requires_grad_(True) for x in xs]

@@ -358,12 +358,13 @@ def _add_solver_flags(p: argparse.ArgumentParser) -> None:
             g.add_argument(cli["flag"], dest=f.name, action="store_const", const=cli["const"], help=cli["help"])
         else:
             kind, *bounds = cli["type"]
-            g.add_argument(cli["flag"], dest=f.name, type=types[kind](*bounds), default=None, help=cli["help"])
+            g.add_argument(cli["flag"], dest=f.name, type=types[kind](*bounds), default=f.default, help=cli["help"])
 
 
 def _solver_options(args) -> Dict[str, Any]:
-    """The solver's options from the flags: a flag left out gives the option's default (a switch left out
-    gives nothing); ``--materials 0`` is the independent model (``materials=None``)."""
+    """The solver's options from the flags: a flag left out gives the option's default (the flag's argparse
+    default, so the manifest records it); a switch left out gives nothing; ``--materials 0`` is the independent
+    model (``materials=None``)."""
     opts = {}
     for f, cli in _solver_flags():
         value = getattr(args, f.name)

@@ -755,6 +755,13 @@ def _iso_core_args(order: int, dt: torch.dtype):
     return K, (L, p(A), p(B), p(c1), p(c2), order, K, p(ka), p(kb), p(kq), p(kc))
 
 
+def _aliases(xs):
+    """Views of the saved inputs for a create_graph backward: ``autograd.grad`` with respect to them follows only
+    the paths through each view, not the paths between the inputs (``wi is wo``, or ``sio`` computed from
+    ``cos_i``), which would count the first derivative twice; the views keep the graph to the inputs."""
+    return tuple(x.view_as(x) for x in xs)
+
+
 class _IsoCore(torch.autograd.Function):
     """``kernels.c`` iso_core: (zi, zo, a, rho, sio, valid) -> (N, K); see :func:`_iso_kernel_t`."""
 
@@ -779,6 +786,7 @@ class _IsoCore(torch.autograd.Function):
         if not need:
             return tuple(grads)
         if torch.is_grad_enabled():  # create_graph: a differentiable backward through the torch kernel
+            xs = _aliases(xs)
             y = _iso_kernel_t(*xs, valid, ctx.order).t()
             if not y.requires_grad:  # order 0: a constant
                 return tuple(torch.zeros_like(xs[i]) if i in need else None for i in range(7))
@@ -830,6 +838,7 @@ class _IsoDirs(torch.autograd.Function):
         if not (ctx.needs_input_grad[0] or ctx.needs_input_grad[1]):
             return None, None, None
         if torch.is_grad_enabled():  # create_graph: a differentiable backward through the torch kernel
+            wi, wo = _aliases((wi, wo))
             y = _iso_kernel_t(*_iso_geom_torch(wi, wo), ctx.order).t()
             if not y.requires_grad:  # order 0: a constant
                 return tuple(torch.zeros_like(w) if nd else None for w, nd in zip((wi, wo), ctx.needs_input_grad[:2])) + (
@@ -917,6 +926,7 @@ class _PairProducts(torch.autograd.Function):
     def backward(ctx, gout):
         A, B = ctx.saved_tensors
         if torch.is_grad_enabled():  # create_graph: differentiable torch formula
+            A, B = _aliases((A, B))
             j, k, c = (t.to(torch.long) if t.dtype == torch.int32 else t for t in ctx.tabs)
             y = (A.index_select(1, j) * B.index_select(1, k) + A.index_select(1, k) * B.index_select(1, j)) * c
             need = [t for t, nd in zip((A, B), ctx.needs_input_grad[:2]) if nd]
@@ -1040,19 +1050,25 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
     _check_group([("wi", wi), ("wo", wo)])
     order = check_order(order)
     K = (order + 1) * (order + 2) * (order + 3) // 6
-    if _native_ok(wi):  # fused C kernels (geometry, then the basis)
-        if wi is wo:
-            lead, flat = wi.shape[:-1], wi.reshape(-1, 3)
-            out = _IsoDirs.apply(flat, flat, order)
-        else:
-            lead, a, b = _broadcast_pair(wi, wo)
-            out = _IsoDirs.apply(a, b, order)
-    elif wi is wo:  # one direction set: the polar table is computed once
-        lead = wi.shape[:-1]
-        out = _run_rows(lambda w: _iso_dirs(w, w, order), K, wi.reshape(-1, 3))
+    # fused C kernels (geometry, then the basis), else the torch kernel in row chunks
+    return _pair_basis(wi, wo, K, lambda a, b: _IsoDirs.apply(a, b, order), lambda a, b: _iso_dirs(a, b, order))
+
+
+def _pair_basis(wi, wo, K, native, flat):
+    """A basis of two direction sets ``(*S, 3), (*S', 3) -> (*broadcast, K)``: ``native(a, b)`` (C kernels) on the
+    flat rows where :func:`_native_ok`, else ``flat(a, b)`` in row chunks. One direction set (``wi is wo``) is
+    passed as the same tensor twice, so that a kernel computes its tables once."""
+    if wi is wo:
+        lead, a = wi.shape[:-1], wi.reshape(-1, 3)
+        b = a
     else:
-        lead, wi, wo = _broadcast_pair(wi, wo)
-        out = _run_rows(lambda a, b: _iso_dirs(a, b, order), K, wi, wo)
+        lead, a, b = _broadcast_pair(wi, wo)
+    if _native_ok(wi):
+        out = native(a, b)
+    elif a is b:
+        out = _run_rows(lambda w: flat(w, w), K, a)
+    else:
+        out = _run_rows(flat, K, a, b)
     return out.reshape(*lead, K)
 
 
@@ -1116,21 +1132,14 @@ def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> tor
     order = check_order(order, max_order=MAX_ANISOTROPIC_ORDER)
     K = (order + 1) ** 2
     K = K * (K + 1) // 2
-    if _native_ok(wi):  # the HSH of both sets (fast path), then the fused pair products
-        if wi is wo:
-            lead, flat = wi.shape[:-1], wi.reshape(-1, 3)
-            Hi = Ho = hsh(flat, order)
-        else:
-            lead, a, b = _broadcast_pair(wi, wo)
-            Hi, Ho = hsh(a, order), hsh(b, order)
-        out = _PairProducts.apply(Hi, Ho, order)
-    elif wi is wo:
-        lead = wi.shape[:-1]
-        out = _run_rows(lambda w: _aniso_flat(w, w, order), K, wi.reshape(-1, 3))
-    else:
-        lead, wi, wo = _broadcast_pair(wi, wo)
-        out = _run_rows(lambda a, b: _aniso_flat(a, b, order), K, wi, wo)
-    return out.reshape(*lead, K)
+    return _pair_basis(wi, wo, K, lambda a, b: _aniso_native(a, b, order), lambda a, b: _aniso_flat(a, b, order))
+
+
+def _aniso_native(a: torch.Tensor, b: torch.Tensor, order: int) -> torch.Tensor:
+    """The HSH of both sets (fast path; once where ``a is b``), then the fused pair products."""
+    Hi = hsh(a, order)
+    Ho = Hi if a is b else hsh(b, order)
+    return _PairProducts.apply(Hi, Ho, order)
 
 
 def helmholtz_isotropic_world(

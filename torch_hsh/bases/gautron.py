@@ -54,12 +54,12 @@ class GautronHSH(PairProductBasis):
     ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., (P+1)**4)``; zero where a
     direction is below the horizon or zero.
 
-    Example:
+    Example (swapping the two directions changes the values: not reciprocal):
         >>> import torch
         >>> from torch_hsh.bases import get_basis
-        >>> w = torch.tensor([[0.0, 0.6, 0.8]])
-        >>> get_basis("gautron_hsh").evaluate(w, w, 1).shape
-        torch.Size([1, 16])
+        >>> b, wi, wo = get_basis("gautron_hsh"), torch.tensor([[0.0, 0.6, 0.8]]), torch.tensor([[0.6, 0.0, 0.8]])
+        >>> b.evaluate(wi, wo, 1).shape, torch.allclose(b.evaluate(wi, wo, 1), b.evaluate(wo, wi, 1))
+        (torch.Size([1, 16]), False)
     """
 
     name = "gautron_hsh"

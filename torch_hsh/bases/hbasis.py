@@ -108,12 +108,11 @@ class HBasis(PairProductBasis):
     ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., K)``, K = 1, 10, 21; columns
     sorted by label (nested).
 
-    Example:
-        >>> import torch
+    Example (the H-basis stops at order 2; its 1, 10, 21 functions are nested):
         >>> from torch_hsh.bases import get_basis
-        >>> w = torch.tensor([[0.0, 0.6, 0.8]])
-        >>> get_basis("hbasis").evaluate(w, w, 2).shape
-        torch.Size([1, 21])
+        >>> b = get_basis("hbasis")
+        >>> b.max_order, [b.num_functions(p) for p in range(3)]
+        (2, [1, 10, 21])
     """
 
     name = "hbasis"

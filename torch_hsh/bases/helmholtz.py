@@ -16,13 +16,22 @@ __all__ = ["HelmholtzIsotropic", "HelmholtzAnisotropic", "COS_MOMENTS", "albedo_
 
 
 class _Helmholtz(DegreeBasis):
-    """What the two Helmholtz bases share: reciprocal, on the hemispheres, registered under several names."""
+    """What the two Helmholtz bases share: reciprocal, on the hemispheres, registered under several names, and
+    evaluated by the kernel function ``_evaluate`` with ``_count(order)`` columns."""
 
     reciprocal = True
     domain = "hemisphere"
+    _evaluate = staticmethod(_b.helmholtz_isotropic)
+    _count = staticmethod(_b.num_isotropic)
 
     def __init__(self, name: str):
         self.name = name
+
+    def evaluate(self, wi, wo, order):
+        return self._evaluate(wi, wo, self.check_order(order))
+
+    def num_functions(self, order):
+        return self._count(self.check_order(order))
 
 
 class HelmholtzIsotropic(_Helmholtz):
@@ -33,12 +42,6 @@ class HelmholtzIsotropic(_Helmholtz):
 
     def __init__(self, name: str = "helmholtz_isotropic"):
         super().__init__(name)
-
-    def evaluate(self, wi, wo, order):
-        return _b.helmholtz_isotropic(wi, wo, self.check_order(order))
-
-    def num_functions(self, order):
-        return _b.num_isotropic(self.check_order(order))
 
     def function_orders(self, order):
         return _b.isotropic_indices(self.check_order(order))[:, 0].clone()
@@ -53,15 +56,11 @@ class HelmholtzAnisotropic(_Helmholtz):
 
     isotropic = False
     max_order = MAX_ANISOTROPIC_ORDER
+    _evaluate = staticmethod(_b.helmholtz_anisotropic)
+    _count = staticmethod(_b.num_anisotropic)
 
     def __init__(self, name: str = "helmholtz_anisotropic"):
         super().__init__(name)
-
-    def evaluate(self, wi, wo, order):
-        return _b.helmholtz_anisotropic(wi, wo, self.check_order(order))
-
-    def num_functions(self, order):
-        return _b.num_anisotropic(self.check_order(order))
 
     def function_orders(self, order):
         idx = _b.anisotropic_indices(self.check_order(order))

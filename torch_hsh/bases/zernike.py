@@ -185,12 +185,13 @@ class KoenderinkZernike(_ZernikeTables):
     ``evaluate(wi, wo, P)``: ``(..., 3), (..., 3) -> (..., K)``, rows as
     :func:`zernike_indices`; zero where a direction is below the horizon or zero.
 
-    Example:
+    Example (reciprocal: swapping the two directions leaves every function unchanged):
         >>> import torch
         >>> from torch_hsh.bases import get_basis
-        >>> w = torch.tensor([[0.0, 0.6, 0.8]])
-        >>> get_basis("koenderink_zernike").evaluate(w, w, 4).shape
-        torch.Size([1, 14])
+        >>> w = torch.tensor([[0.0, 0.6, 0.8], [0.6, 0.0, 0.8]])
+        >>> f = get_basis("koenderink_zernike").evaluate(w[:1], w[1:], 4)
+        >>> f.shape, bool((f - get_basis("koenderink_zernike").evaluate(w[1:], w[:1], 4)).abs().max() < 1e-12)
+        (torch.Size([1, 14]), True)
     """
 
     name = "koenderink_zernike"
