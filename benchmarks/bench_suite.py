@@ -77,6 +77,8 @@ def main(argv=None):
     ap.add_argument("--max-pixels", type=int, default=None, help="random subset of the mask (quick: 400)")
     ap.add_argument("--mitsuba-root", default=None, help="cache root of the Mitsuba scenes (default: its cache)")
     ap.add_argument("--no-shadows", action="store_true", help="skip the cast_shadows=1 column")
+    ap.add_argument("--stages", nargs="+", default=None, choices=["per-pixel", "shadows"],
+                    help="run only these columns (per-pixel: solve_hsh; shadows: cast_shadows=1); default both")
     ap.add_argument("--json", default=None, help="write every record to this JSON file")
     args = ap.parse_args(argv)
     threads = args.threads or (1 if args.quick else 2)
@@ -94,7 +96,8 @@ def main(argv=None):
         scenes = [s for s in scenes if s.name in args.only]
     if args.kinds:
         scenes = [s for s in scenes if s.kind in args.kinds]
-    stages = [s for s in STAGES if not (args.no_shadows and s[1] and "--cast-shadows" in s[1])]
+    want = set(args.stages or ["per-pixel", "shadows"]) - ({"shadows"} if args.no_shadows else set())
+    stages = [s for s in STAGES if s[1] is None or ("shadows" if "--cast-shadows" in s[1] else "per-pixel") in want]
     common = ["--threads", threads] + (["--max-pixels", max_pixels] if max_pixels else [])
     print(f"suite: {len(scenes)} scene(s), solver seeds {' '.join(map(str, seeds))}, {threads} thread(s) per solve"
           + (f", at most {max_pixels} mask px" if max_pixels else ""), flush=True)
@@ -129,7 +132,7 @@ def main(argv=None):
                              "cpu_s": h.get("cpu_s", 0.0), "peak_rss_mb": r["peak_rss_mb"]})
                 print(f"  {sc.name} {label} seed {s}: mean {h['mean']:.2f} median {h['median']:.2f} "
                       f"time {h['time_s']:.1f} s (cpu {h.get('cpu_s', 0):.1f} s)", flush=True)
-            rec["stages"][label] = {"runs": runs, **summarize(runs)}
+            rec["stages"][label] = {"runs": runs, **summarize(runs)} if runs else None
         records[sc.name] = rec
         cells = []
         for label, extra, _ in stages:
