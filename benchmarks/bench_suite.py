@@ -51,6 +51,11 @@ STAGES = [
 ]
 
 
+def _render_progress(msg: str) -> None:
+    """Progress of a Mitsuba render (only when a scene is not cached), on stderr."""
+    print(f"    rendering {msg}", file=sys.stderr, flush=True)
+
+
 def _fmt(x: Optional[float], nd: int = 2) -> str:
     return "n/a" if x is None else f"{x:.{nd}f}"
 
@@ -106,7 +111,7 @@ def main(argv=None):
         t0 = time.perf_counter()
         try:
             folder = suite_mod.scene_folder(sc, shared=shared, mitsuba_root=args.mitsuba_root,
-                                            threads=args.render_threads)
+                                            threads=args.render_threads, progress=_render_progress)
         except ImportError as err:
             print(f"  {sc.name}: skipped ({sc.kind}: {err}; install the bench extra)", flush=True)
             continue
