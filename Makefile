@@ -65,7 +65,7 @@ $(MUTATION_STAMP): $(STAMP) pyproject.toml
 # Mutation testing (mutmut) of kernel.py (the basis kernel), the fitting package and its product rules (fitting/rules.py,
 # fitting/convergence.py; "_integrate" in tools/mutate.py), each judged by its own tests only
 # (tools/mutate.py; scratch copies and mutmut's cache in build/mutmut/<module>/). Not part of CI: kernel.py
-# alone takes about 40 min on 2 loaded cores. ARGS="kernel" runs one module, ARGS="kernel --max-children 2".
+# has 2397 mutants: about 5 h on 2 loaded cores (0.12 mutants/s); 440 of them took 48 min. ARGS="kernel" runs one module, ARGS="kernel --max-children 2".
 mutate: $(MUTATION_STAMP)
 	$(PY) tools/mutate.py $(ARGS)
 
