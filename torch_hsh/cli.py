@@ -350,7 +350,7 @@ def _solver_flags():
 
 def _add_solver_flags(p: argparse.ArgumentParser) -> None:
     """The solver's flags, generated from the fields of :class:`torch_hsh.ps.Settings` (flag, type, help)."""
-    types = {"int": _int_in, "float": lambda lo, hi, lo_open: _float_in(lo, hi, lo_open=lo_open),
+    types: Dict[str, Any] = {"int": _int_in, "float": lambda lo, hi, lo_open: _float_in(lo, hi, lo_open=lo_open),
              "materials": lambda: _materials_arg}
     g = p.add_argument_group("HSH solver options (fields of torch_hsh.ps.Settings)")
     for f, cli in _solver_flags():

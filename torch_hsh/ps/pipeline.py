@@ -140,7 +140,8 @@ def solve_hsh(
     return run_stages(images, lights, intensities, mask, cfg)
 
 
-solve_hsh.__doc__ = solve_hsh.__doc__.replace("{options}", option_docs("        "))
+if solve_hsh.__doc__:  # None under python -OO
+    solve_hsh.__doc__ = solve_hsh.__doc__.replace("{options}", option_docs("        "))
 
 
 def run_stages(images: torch.Tensor, lights: torch.Tensor, intensities: Optional[torch.Tensor],

@@ -402,7 +402,8 @@ def option_docs(indent: str = "    ") -> str:
     return f"\n{indent}".join(out)
 
 
-Settings.__doc__ = Settings.__doc__.replace("{options}", option_docs())
+if Settings.__doc__:  # None under python -OO
+    Settings.__doc__ = Settings.__doc__.replace("{options}", option_docs())
 
 
 #: Accepted names in ``calibration_starts`` (see :func:`~torch_hsh.ps.solve_hsh`).
