@@ -500,7 +500,7 @@ def test_settings_are_checked_from_their_fields_and_solve_hsh_takes_them():
     for f in dataclasses.fields(ps.Settings):  # every option documented where it is defined ...
         assert f.metadata["doc"], f.name
         if not f.metadata["internal"]:  # ... and listed in solve_hsh's docstring
-            assert f"\n        {f.name}: " in ps.solve_hsh.__doc__, f.name
+            assert f"\n        * ``{f.name}``: " in ps.solve_hsh.__doc__, f.name
     n, l = _scene(30, 10)
     img = render(n, l, Lambertian(0.5))
     with pytest.raises(TypeError, match="not_an_option"):

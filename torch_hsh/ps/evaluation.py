@@ -39,7 +39,7 @@ def holdout_evaluation(
         holdout: number of lights held out (chosen by a seeded permutation).
         seed: permutation seed.
         test_indices: explicit held-out light indices (overrides ``holdout``).
-        settings, **overrides: the solver's options, as in :func:`solve_hsh` (e.g. ``order=4``; ``seed``
+        settings, ``**overrides``: the solver's options, as in :func:`solve_hsh` (e.g. ``order=4``; ``seed``
             here is the permutation's, ``settings.seed`` the solver's).
 
     Returns:

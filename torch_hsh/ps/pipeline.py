@@ -107,7 +107,8 @@ def solve_hsh(
             **overrides)``): the fields of :class:`~torch_hsh.ps.Settings`,
             listed here from their definitions.
 
-    Options:
+    Options (the fields of :class:`~torch_hsh.ps.Settings`):
+
         {options}
 
     Real captures: the solver runs at unit brightness (the images are divided

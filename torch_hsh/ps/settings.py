@@ -392,13 +392,13 @@ class Settings:
 
 
 def option_docs(indent: str = "    ") -> str:
-    """The ``name: doc`` list of the options of :class:`Settings` (for docstrings), one entry per field."""
+    """The options of :class:`Settings` as a reST bullet list (for docstrings), one item per field."""
     out = []
     for f in fields(Settings):
         if f.metadata["internal"]:
             continue
         lines = [ln.strip() for ln in f.metadata["doc"].splitlines()]
-        out.append(f"{f.name}: " + f"\n{indent}    ".join(lines))
+        out.append(f"* ``{f.name}``: " + f"\n{indent}  ".join(lines))
     return f"\n{indent}".join(out)
 
 
