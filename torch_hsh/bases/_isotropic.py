@@ -14,6 +14,7 @@ normalisation and horizon mask that every ``evaluate`` starts with, and
 """
 from __future__ import annotations
 
+from abc import abstractmethod
 from typing import Callable, List, Optional, Sequence, Tuple
 
 import torch
@@ -98,16 +99,17 @@ class RowTableBasis(DegreeBasis):
     symmetric = True
     _cache_key = ""
 
+    @abstractmethod
     def rows(self, order: int) -> Tuple[tuple, ...]:
-        raise NotImplementedError
+        """The basis functions' index tuples up to ``order``, order label first, nested by label."""
 
+    @abstractmethod
     def tables(self, zi, zo, cr, ci, valid, order: int):
         """``(Ti, To, A, col)``: polar tables of both directions, azimuthal table, column map of ``Ti``/``To``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def gather(self, row: tuple, col: dict, order: int) -> Tuple[int, int, int, float]:
         """``(column of Ti, column of To, column of A, factor)`` of one row."""
-        raise NotImplementedError
 
     def evaluate(self, wi, wo, order):
         lead, zi, zo, cr, ci, valid = pair_frame(wi, wo, hemisphere=self.domain == "hemisphere")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
+from abc import abstractmethod
 from typing import Sequence, Tuple
 
 import torch
@@ -117,11 +118,13 @@ class PairProductBasis(DegreeBasis):
     symmetric = True
     _cache_key = ""
 
+    @abstractmethod
     def labels(self, order: int) -> Tuple[int, ...]:
-        raise NotImplementedError
+        """The order label of each per-direction function up to ``order``."""
 
+    @abstractmethod
     def per_direction(self, d: torch.Tensor, order: int) -> torch.Tensor:
-        raise NotImplementedError
+        """``(N, 3) -> (N, L)``: the per-direction functions of unit directions ``d``."""
 
     def evaluate(self, wi, wo, order):
         lead, wi, wo = broadcast_pair(wi, wo)
