@@ -18,9 +18,12 @@ Columns (stages). Each runs in its own process (``_ps_worker.py``), once per sol
 * ``LS``: Lambertian least squares (reference, seed-free);
 * ``per-pixel``: ``solve_hsh`` with the defaults;
 * ``per-pixel + cast_shadows=1``: ``solve_hsh(cast_shadows=1)``, one round of the cast-shadow loop;
-* ``+surface``, ``+surface +shadows``, ``+interreflection``: the whole-surface stages of issue 21,
-  item 1. They do not exist yet: the columns print ``n/a`` (never a number). To add one, give its
-  entry in :data:`STAGES` the ``_ps_worker.py`` arguments that run it.
+* ``+surface``, ``+surface +shadows``: the whole-surface stage (:func:`torch_hsh.ps.refine_surface`)
+  after the per-pixel solve of the same seed, without and with its cast shadows. The mean is what
+  the stage returns with its safeguard (the start when the held-out-light error rises); ``forced``
+  is the refined surface's own error, ``kept`` how many seeds the safeguard accepted, and the time
+  is the stage's alone.
+* ``+interreflection``: not implemented; the column prints ``n/a`` (never a number).
 
 Every solve prints a line as soon as it ends (flushed); then one summary line per scene, and a
 Markdown table at the end. Errors are the mean angular error (degrees) over the mask; ``spread``
@@ -45,10 +48,14 @@ from _baseline import run_worker  # noqa: E402
 STAGES = [
     ("per-pixel", [], "solve_hsh, defaults"),
     ("per-pixel + cast_shadows=1", ["--cast-shadows", 1], "solve_hsh(cast_shadows=1)"),
-    ("+surface", None, "whole-surface refinement (issue 21 item 1): not implemented yet"),
-    ("+surface +shadows", None, "with differentiable cast shadows: not implemented yet"),
-    ("+interreflection", None, "one bounce between pixels: not implemented yet"),
+    ("+surface", ["--surface", "plain"], "solve_hsh, then refine_surface(surface_shadows=False)"),
+    ("+surface +shadows", ["--surface", "shadows"], "solve_hsh, then refine_surface() (shadows from its depth)"),
+    ("+interreflection", None, "one bounce between pixels: not implemented"),
 ]
+
+#: --stages names of the columns
+_STAGE_KEYS = {"per-pixel": "per-pixel", "per-pixel + cast_shadows=1": "shadows", "+surface": "surface",
+               "+surface +shadows": "surface-shadows"}
 
 
 def _render_progress(msg: str) -> None:
@@ -62,7 +69,12 @@ def _fmt(x: Optional[float], nd: int = 2) -> str:
 
 def summarize(runs: List[dict]) -> dict:
     means = [r["mean"] for r in runs]
-    return {"seeds": [r["seed"] for r in runs], "means": means, "mean": statistics.fmean(means),
+    extra = {}
+    if runs and "forced_mean" in runs[0]:
+        extra = {"forced_mean": statistics.fmean(r["forced_mean"] for r in runs),
+                 "start_mean": statistics.fmean(r["start_mean"] for r in runs),
+                 "kept": sum(r["kept"] for r in runs)}
+    return {**extra, "seeds": [r["seed"] for r in runs], "means": means, "mean": statistics.fmean(means),
             "spread": max(means) - min(means), "median_err": statistics.fmean(r["median"] for r in runs),
             "time_s": statistics.median(r["time_s"] for r in runs),
             "cpu_s": statistics.median(r["cpu_s"] for r in runs)}
@@ -82,8 +94,9 @@ def main(argv=None):
     ap.add_argument("--max-pixels", type=int, default=None, help="random subset of the mask (quick: 400)")
     ap.add_argument("--mitsuba-root", default=None, help="cache root of the Mitsuba scenes (default: its cache)")
     ap.add_argument("--no-shadows", action="store_true", help="skip the cast_shadows=1 column")
-    ap.add_argument("--stages", nargs="+", default=None, choices=["per-pixel", "shadows"],
-                    help="run only these columns (per-pixel: solve_hsh; shadows: cast_shadows=1); default both")
+    ap.add_argument("--stages", nargs="+", default=None, choices=sorted(set(_STAGE_KEYS.values())),
+                    help="run only these columns (per-pixel: solve_hsh; shadows: cast_shadows=1; surface / "
+                         "surface-shadows: the whole-surface stage); default all")
     ap.add_argument("--json", default=None, help="write every record to this JSON file")
     args = ap.parse_args(argv)
     threads = args.threads or (1 if args.quick else 2)
@@ -101,8 +114,8 @@ def main(argv=None):
         scenes = [s for s in scenes if s.name in args.only]
     if args.kinds:
         scenes = [s for s in scenes if s.kind in args.kinds]
-    want = set(args.stages or ["per-pixel", "shadows"]) - ({"shadows"} if args.no_shadows else set())
-    stages = [s for s in STAGES if s[1] is None or ("shadows" if "--cast-shadows" in s[1] else "per-pixel") in want]
+    want = set(args.stages or _STAGE_KEYS.values()) - ({"shadows"} if args.no_shadows else set())
+    stages = [s for s in STAGES if s[1] is None or _STAGE_KEYS[s[0]] in want]
     common = ["--threads", threads] + (["--max-pixels", max_pixels] if max_pixels else [])
     print(f"suite: {len(scenes)} scene(s), solver seeds {' '.join(map(str, seeds))}, {threads} thread(s) per solve"
           + (f", at most {max_pixels} mask px" if max_pixels else ""), flush=True)
@@ -132,18 +145,30 @@ def main(argv=None):
             runs = []
             for s in seeds:
                 r = run_worker(["--data", folder, "--methods", "hsh", "--seed", s, *extra, *common])
-                h = r["methods"]["hsh"]
-                runs.append({"seed": s, "mean": h["mean"], "median": h["median"], "time_s": h["time_s"],
-                             "cpu_s": h.get("cpu_s", 0.0), "peak_rss_mb": r["peak_rss_mb"]})
+                h = r["methods"]["surface" if "--surface" in extra else "hsh"]
+                run = {"seed": s, "mean": h["mean"], "median": h["median"], "time_s": h["time_s"],
+                       "cpu_s": h.get("cpu_s", 0.0), "peak_rss_mb": r["peak_rss_mb"]}
+                more = ""
+                if "--surface" in extra:
+                    i = h["info"]
+                    run.update(start_mean=r["methods"]["hsh"]["mean"], forced_mean=h["forced_mean"],
+                               kept=bool(i.get("surface_accepted")), heldout_before=i.get("surface_heldout_before"),
+                               heldout_after=i.get("surface_heldout_after"), start_time_s=r["methods"]["hsh"]["time_s"])
+                    more = (f" (start {run['start_mean']:.2f}, forced {run['forced_mean']:.2f}, "
+                            f"{'kept' if run['kept'] else 'rejected'}; held-out {_fmt(run['heldout_before'], 4)} -> "
+                            f"{_fmt(run['heldout_after'], 4)})")
+                runs.append(run)
                 print(f"  {sc.name} {label} seed {s}: mean {h['mean']:.2f} median {h['median']:.2f} "
-                      f"time {h['time_s']:.1f} s (cpu {h.get('cpu_s', 0):.1f} s)", flush=True)
+                      f"time {h['time_s']:.1f} s (cpu {h.get('cpu_s', 0):.1f} s){more}", flush=True)
             rec["stages"][label] = {"runs": runs, **summarize(runs)} if runs else None
         records[sc.name] = rec
         cells = []
         for label, extra, _ in stages:
             st = rec["stages"][label]
             cells.append(f"{label} n/a" if st is None else
-                         f"{label} {st['mean']:.2f} (spread {st['spread']:.2f}, {st['time_s']:.1f} s)")
+                         f"{label} {st['mean']:.2f} (spread {st['spread']:.2f}, {st['time_s']:.1f} s"
+                         + (f", forced {st['forced_mean']:.2f}, kept {st['kept']}/{len(st['runs'])})"
+                            if "forced_mean" in st else ")"))
         print(f"{sc.name}: LS {rec['ls']['mean']:.2f} | " + " | ".join(cells), flush=True)
     _print_table(records, stages, seeds)
     if args.json:
@@ -155,7 +180,8 @@ def main(argv=None):
 def _print_table(records, stages, seeds):
     heads = ["scene", "kind", "px x lights", "LS"]
     for label, extra, _ in stages:
-        heads += [label] if extra is None else [f"{label}: mean (spread)", "time"]
+        heads += [label] if extra is None else [f"{label}: mean (spread)", "time"] + (
+            ["forced", "kept"] if "--surface" in extra else [])
     print("\n| " + " | ".join(heads) + " |")
     print("|" + "---|" * len(heads))
     for name, rec in records.items():
@@ -166,8 +192,10 @@ def _print_table(records, stages, seeds):
                 row.append("n/a")
             else:
                 row += [f"{st['mean']:.2f} ({st['spread']:.2f})", f"{st['time_s']:.1f} s"]
+                if "--surface" in extra:
+                    row += [f"{st['forced_mean']:.2f}", f"{st['kept']}/{len(st['runs'])}"]
         print("| " + " | ".join(row) + " |")
-    print(f"\nsolver seeds {' '.join(map(str, seeds))}; n/a: the stage does not exist yet (issue 21, item 1)", flush=True)
+    print(f"\nsolver seeds {' '.join(map(str, seeds))}; n/a: not implemented; +surface columns: mean with the safeguard, forced = the refined surface, kept = seeds the safeguard accepted, time = the stage alone", flush=True)
 
 
 if __name__ == "__main__":

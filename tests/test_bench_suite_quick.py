@@ -2,8 +2,9 @@
 
 Runs in its own process on two quick scenes of the suite: the tiny Mitsuba dome (rendered into a
 temporary cache; skipped without mitsuba) and the synthetic bumpy height field with cast shadows.
-Checks the per-solve lines (printed as they end), the per-scene summary, the ``n/a`` columns of the
-stages that do not exist yet, and that the JSON record matches the printed numbers.
+Checks the per-solve lines (printed as they end), the per-scene summary, the whole-surface columns
+(safeguarded and forced errors, the safeguard's decision), the ``n/a`` column of the stage that does
+not exist (interreflection), and that the JSON record matches the printed numbers.
 """
 from __future__ import annotations
 
@@ -33,15 +34,27 @@ def test_bench_suite_quick(tmp_path, monkeypatch):
     for name, s in scenes.items():
         assert s["pixels"] <= 400 and s["lights"] in (8, 20)
         st = s["stages"]
-        assert st["+surface"] is None and st["+interreflection"] is None and st["+surface +shadows"] is None
+        assert st["+interreflection"] is None
         for label in ("per-pixel", "per-pixel + cast_shadows=1"):
             (run,) = st[label]["runs"]
             assert 0 < run["mean"] < 45 and run["time_s"] > 0, (name, label, run)
             m = re.search(rf"^  {name} {re.escape(label)} seed 0: mean {NUM} median {NUM} time {NUM} s", r.stdout, re.M)
             assert m and float(m.group(1)) == pytest.approx(run["mean"], abs=0.006), r.stdout
-        assert re.search(rf"^{name}: LS {NUM} \| per-pixel {NUM} \(spread 0.00, .*\| \+surface n/a \| "
-                         rf"\+surface \+shadows n/a \| \+interreflection n/a$", r.stdout, re.M), r.stdout
-        assert re.search(rf"^\| {name} \| \w+ \| [\d,]+ x \d+ \| {NUM} \| .* \| n/a \| n/a \| n/a \|$", r.stdout, re.M)
+        start = st["per-pixel"]["runs"][0]["mean"]
+        for label in ("+surface", "+surface +shadows"):
+            (run,) = st[label]["runs"]
+            assert run["start_mean"] == pytest.approx(start, abs=1e-9)  # the same solve, then the stage
+            assert 0 < run["forced_mean"] < 90 and run["time_s"] > 0
+            # the safeguard returns the refined surface only when the held-out error fell
+            assert run["kept"] == (run["heldout_after"] < run["heldout_before"])
+            assert run["mean"] == pytest.approx(run["forced_mean"] if run["kept"] else start, abs=1e-9)
+            m = re.search(rf"^  {name} {re.escape(label)} seed 0: mean {NUM} median {NUM} time {NUM} s "
+                          rf"\(cpu {NUM} s\) \(start {NUM}, forced {NUM}, (kept|rejected); held-out", r.stdout, re.M)
+            assert m and float(m.group(6)) == pytest.approx(run["forced_mean"], abs=0.006), r.stdout
+            assert (m.group(7) == "kept") == run["kept"]
+        assert re.search(rf"^{name}: LS {NUM} \| per-pixel {NUM} \(spread 0.00, .*\| \+surface {NUM} \(spread 0.00, "
+                         rf".*, forced {NUM}, kept [01]/1\) \| .* \| \+interreflection n/a$", r.stdout, re.M), r.stdout
+        assert re.search(rf"^\| {name} \| \w+ \| [\d,]+ x \d+ \| {NUM} \| .* \| [01]/1 \| n/a \|$", r.stdout, re.M)
     if has_mitsuba:
         assert scenes["dome_plastic"]["stages"]["per-pixel"]["mean"] < 10  # matte dome: a small error
     # printed as it goes: the first solve's line came well before the last scene was done

@@ -481,3 +481,25 @@ def test_holdout_uses_the_same_solver_options(tmp_path, capsys, fake_solver, mon
                     "--flattened-starts"], capsys)
     assert code == 0 and seen["holdout"] == 2
     assert seen["basis_ridge"] == 0.01 and seen["calibration_starts"] == ("lambertian", "independent", "flattened")
+
+
+def test_refine_surface_flag_reaches_the_solver(tmp_path, capsys, fake_solver):
+    code, _ = _run(["ps", "--out", str(tmp_path / "a"), *FAST], capsys)
+    assert code == 0 and fake_solver.calls[-1].get("refine_surface", 0) == 0
+    code, _ = _run(["ps", "--out", str(tmp_path / "b"), *FAST, "--refine-surface"], capsys)
+    assert code == 0 and fake_solver.calls[-1]["refine_surface"] == ps.settings.SURFACE_ROUNDS
+
+
+def test_depth_of_the_whole_surface_stage_is_written_as_is(tmp_path, capsys):
+    # a real solve with the stage: --depth writes the stage's own depth map, not a re-integration
+    code, _ = _run(["ps", "--out", str(tmp_path / "r"), "--scene", "small", "--size", "24", "--lights", "12",
+                    "--refine-surface", "--depth"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "whole-surface stage" in out.out
+    res = ps.HSHResult.load(tmp_path / "r" / "result.npz")
+    depth = np.load(tmp_path / "r" / "depth.npy")
+    m = res.mask.numpy()
+    assert res.depth is not None and np.allclose(depth[m], res.depth.numpy()[m], rtol=1e-6)
+    metrics = json.loads((tmp_path / "r" / "metrics.json").read_text())
+    assert metrics["surface"]["integrator"] == "whole-surface stage"

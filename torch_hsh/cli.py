@@ -384,9 +384,14 @@ def _save_surface(stage, args, res, mask, metrics, say) -> None:
     t = time.perf_counter()
     n = res.normals.detach().cpu().double()
     m = mask.cpu()
-    depth, info = integrate_normals(n, m, method=args.integrator, return_info=True)
-    metrics["surface"] = {"integrator": args.integrator, "components": info.get("components"),
-                          "runtime_s": time.perf_counter() - t}
+    if getattr(res, "depth", None) is not None:  # the whole-surface stage's own depth (--refine-surface)
+        depth, how = res.depth.detach().cpu().double(), "whole-surface stage"
+        metrics["surface"] = {"integrator": how, "components": None, "runtime_s": 0.0}
+    else:
+        depth, info = integrate_normals(n, m, method=args.integrator, return_info=True)
+        how = f"{args.integrator} integration"
+        metrics["surface"] = {"integrator": args.integrator, "components": info.get("components"),
+                              "runtime_s": time.perf_counter() - t}
     if args.depth:
         save_depth(stage.file("depth.npy"), depth, m)
         save_depth(stage.file("depth.exr"), depth, m)
@@ -395,7 +400,7 @@ def _save_surface(stage, args, res, mask, metrics, say) -> None:
         save_mesh(stage.file(f"mesh.{args.mesh}"), depth, m, normals=n, albedo=albedo)
     img = shade_depth(depth, m).cpu().numpy()
     _write_png(stage.file("surface.png"), _to_png8(img))
-    say(f"surface: {args.integrator} integration in {metrics['surface']['runtime_s']:.2f} s")
+    say(f"surface: {how} in {metrics['surface']['runtime_s']:.2f} s")
 
 
 def _errors(n, gt, mask):

@@ -5,6 +5,8 @@
 * :func:`solve_hsh` — normals + isotropic Helmholtz BRDF coefficients per pixel, with a few basis
   BRDFs shared by the object (default) or independent BRDFs per pixel; its options are the fields of
   :class:`Settings` (each with its default, check and doc).
+* :func:`refine_surface` — the whole-surface stage after the solve: one depth map, the shared BRDFs and
+  the shadows it casts (``solve_hsh(..., refine_surface=True)``).
 * :func:`holdout_evaluation` — fit on a subset of the lights, relighting error on the rest.
 * :func:`angular_error` — per-pixel angular error in degrees.
 
@@ -30,6 +32,7 @@ from .observations import observation_weights
 from .pipeline import solve_hsh
 from .result import HoldoutResult, HSHResult, directional_albedo_view
 from .settings import DEFAULT_BASIS_RIDGE, DEFAULT_MATERIALS, DEFAULT_ORDER, Settings
+from .whole_surface import refine_surface
 
 __all__ = [
     "DEFAULT_BASIS_RIDGE",
@@ -44,6 +47,7 @@ __all__ = [
     "holdout_evaluation",
     "lambertian_ls",
     "observation_weights",
+    "refine_surface",
     "robust_lambertian",
     "solve_hsh",
     "trimmed_weights",

@@ -55,9 +55,10 @@ from .lambertian import _solve_flat
 from .observations import observe
 from .materials import select_materials
 from .refinement import refine
-from .result import HSHResult, directional_albedo_view
+from .result import HSHResult, confidence, directional_albedo_view
 from .settings import AUTO, Settings, option_docs
 from .shadows import shadow_loop
+from .whole_surface import refine_surface
 
 __all__ = ["solve_hsh", "run_stages", "confidence", "MIN_VALID_OBSERVATIONS"]
 
@@ -136,9 +137,11 @@ def solve_hsh(
         (torch.Size([64, 64, 3]), torch.Size([64, 64, 3, 20]))
     """
     cfg = Settings(**overrides) if settings is None else dataclasses.replace(settings, **overrides)
-    if cfg.cast_shadows:
-        return shadow_loop(run_stages, images, lights, intensities, mask, cfg)
-    return run_stages(images, lights, intensities, mask, cfg)
+    res = shadow_loop(run_stages, images, lights, intensities, mask, cfg) if cfg.cast_shadows else \
+        run_stages(images, lights, intensities, mask, cfg)
+    if cfg.refine_surface:
+        res = refine_surface(res, images, lights, intensities, settings=cfg)
+    return res
 
 
 if solve_hsh.__doc__:  # None under python -OO
@@ -315,25 +318,3 @@ def _fallback_normals(obs, n_init, bad) -> torch.Tensor:
     n_ls, _ = _solve_flat(y, d.lights, w)
     three = (w > 0).sum(-1) >= 3
     return torch.where(three.unsqueeze(-1), n_ls, n_init[idx])
-
-
-def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, order: int, c: float) -> torch.Tensor:
-    """Per-pixel confidence in ``[0, 1]``: enough inliers, times a fit at the noise level.
-
-    ``weights (P, L)`` robust weights, ``residual (P,)`` weighted RMS residual,
-    ``scale`` the robust residual scale of the solve. Two factors:
-
-    * coverage ``clamp((n_eff - 3) / (U - 3), 0, 1)`` with ``n_eff`` the sum of
-      the robust weights and ``U = (P+1)(P+2)/2`` the number of BRDF
-      combinations one viewpoint can identify: 0 with 3 inliers (a normal and
-      nothing else), 1 once there are as many inliers as identifiable terms;
-    * fit ``1 / (1 + (residual / (c scale))^2)``: the Cauchy weight of the
-      pixel's residual, the same weight the solver gives an observation.
-    """
-    U = (order + 1) * (order + 2) // 2
-    n_eff = row_sum(weights, residual.dtype)
-    cover = ((n_eff - 3.0) / max(U - 3, 1)).clamp(0.0, 1.0)
-    sc = max(float(scale), 1e-30)
-    fit = 1.0 / (1.0 + (residual / (c * sc)) ** 2)
-    out = cover * fit
-    return torch.where(torch.isfinite(out), out, torch.zeros_like(out))

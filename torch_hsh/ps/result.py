@@ -16,8 +16,9 @@ import torch
 from ..bases.helmholtz import albedo_terms
 from ..kernel import _polar_table, num_isotropic
 from ..render import order_from_num_coefficients, render_coefficients
+from ._chunks import row_sum
 
-__all__ = ["HSHResult", "HoldoutResult", "directional_albedo_view"]
+__all__ = ["HSHResult", "HoldoutResult", "confidence", "directional_albedo_view"]
 
 
 _SAVE_FORMAT = "torch_hsh.HSHResult"
@@ -51,6 +52,9 @@ class HSHResult:
             by inlier observations times the Cauchy weight of the pixel's
             residual (see :func:`torch_hsh.ps.pipeline.confidence`). Threshold it
             to keep reliable pixels.
+        depth: ``(*S)`` height map in pixel units (z toward the camera, NaN
+            outside the mask) of the whole-surface stage
+            (:func:`torch_hsh.ps.refine_surface`), else ``None``.
     """
 
     normals: torch.Tensor
@@ -66,14 +70,15 @@ class HSHResult:
     basis_brdfs: Optional[torch.Tensor] = None
     mixing: Optional[torch.Tensor] = None
     confidence: Optional[torch.Tensor] = None
+    depth: Optional[torch.Tensor] = None
 
     def save(self, path, channels: Optional[Sequence[str]] = None, weights: bool = False,
              overwrite: bool = False) -> None:
         """Write the result to one ``.npz`` file with a versioned JSON metadata entry.
 
         Stored: ``normals``, ``coefficients`` (with named channels), ``albedo``,
-        ``residual``, ``mask``, ``lights``, ``confidence``, ``basis_brdfs`` and
-        ``mixing`` where they exist, and ``weights`` only if ``weights=True``
+        ``residual``, ``mask``, ``lights``, ``confidence``, ``basis_brdfs``,
+        ``mixing`` and ``depth`` where they exist, and ``weights`` only if ``weights=True``
         (``(*S, L)``, the largest array); ``order``, ``info`` and ``runtime_s`` go
         into the metadata.
 
@@ -107,7 +112,7 @@ class HSHResult:
             raise ValueError(f"`channels` must name the {C} coefficient channels, got {channels}")
         arrays = {}
         for name in ("normals", "coefficients", "albedo", "residual", "mask", "lights", "confidence", "basis_brdfs",
-                     "mixing") + (("weights",) if weights else ()):
+                     "mixing", "depth") + (("weights",) if weights else ()):
             v = getattr(self, name)
             if v is not None:
                 arrays[name] = v.detach().cpu().numpy()
@@ -159,7 +164,8 @@ class HSHResult:
         return cls(normals=t["normals"], coefficients=t["coefficients"], albedo=t["albedo"], residual=t["residual"],
                    weights=w, mask=t["mask"], order=int(meta["order"]), lights=t["lights"],
                    runtime_s=float(meta.get("runtime_s", 0.0)), info=dict(meta.get("info", {})),
-                   basis_brdfs=t.get("basis_brdfs"), mixing=t.get("mixing"), confidence=t.get("confidence"))
+                   basis_brdfs=t.get("basis_brdfs"), mixing=t.get("mixing"), confidence=t.get("confidence"),
+                   depth=t.get("depth"))
 
     def relight(self, lights: torch.Tensor, intensities: Optional[torch.Tensor] = None, clamp: bool = True) -> torch.Tensor:
         """Render the fitted surface under new lights.
@@ -258,6 +264,28 @@ def directional_albedo_view(coefficients: torch.Tensor, cos_o: torch.Tensor) -> 
     D = _albedo_vector(order, cos_o.reshape(-1).to(coefficients.dtype))  # (N, K)
     a = coefficients.reshape(-1, coefficients.shape[-2], K)
     return torch.einsum("nck,nk->nc", a, D).reshape(*lead, coefficients.shape[-2])
+
+
+def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, order: int, c: float) -> torch.Tensor:
+    """Per-pixel confidence in ``[0, 1]``: enough inliers, times a fit at the noise level.
+
+    ``weights (P, L)`` robust weights, ``residual (P,)`` weighted RMS residual,
+    ``scale`` the robust residual scale of the solve. Two factors:
+
+    * coverage ``clamp((n_eff - 3) / (U - 3), 0, 1)`` with ``n_eff`` the sum of
+      the robust weights and ``U = (P+1)(P+2)/2`` the number of BRDF
+      combinations one viewpoint can identify: 0 with 3 inliers (a normal and
+      nothing else), 1 once there are as many inliers as identifiable terms;
+    * fit ``1 / (1 + (residual / (c scale))^2)``: the Cauchy weight of the
+      pixel's residual, the same weight the solver gives an observation.
+    """
+    U = (order + 1) * (order + 2) // 2
+    n_eff = row_sum(weights, residual.dtype)
+    cover = ((n_eff - 3.0) / max(U - 3, 1)).clamp(0.0, 1.0)
+    sc = max(float(scale), 1e-30)
+    fit = 1.0 / (1.0 + (residual / (c * sc)) ** 2)
+    out = cover * fit
+    return torch.where(torch.isfinite(out), out, torch.zeros_like(out))
 
 
 def __getattr__(name):

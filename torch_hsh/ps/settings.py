@@ -44,6 +44,11 @@ DEFAULT_BASIS_RIDGE = 3e-3
 #: (held-out-light cross-validation, :mod:`torch_hsh.ps.materials`).
 AUTO = "auto"
 
+#: Outer rounds of the whole-surface stage (:mod:`torch_hsh.ps.whole_surface`) when it is switched on.
+SURFACE_ROUNDS = 2
+#: L-BFGS iterations of the depth per round of that stage.
+SURFACE_ITERATIONS = 10
+
 #: Cauchy constant of every robust reweighting (95 % efficiency at Gaussian noise).
 CAUCHY_C = 2.385
 
@@ -140,6 +145,28 @@ def _check_cast_shadows(v, s):
     if isinstance(v, bool) or int(v) != v or v < 0:
         raise ValueError(f"`cast_shadows` must be an integer >= 0 (rounds of the shadow loop), got {v!r}")
     return v
+
+
+def _check_refine_surface(v, s):
+    if v is True:
+        return SURFACE_ROUNDS
+    if v is False or v is None:
+        return 0
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        raise ValueError(f"`refine_surface` must be a bool or an integer >= 0 (rounds of the stage), got {v!r}")
+    return v
+
+
+def _check_surface_iterations(v, s):
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"`surface_iterations` must be an integer >= 1, got {v!r}")
+    return v
+
+
+def _check_surface_holdout(v, s):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 0.5:
+        raise ValueError(f"`surface_holdout` must be a fraction of the lights in (0, 0.5), got {v!r}")
+    return float(v)
 
 
 def _check_shadow_bias(v, s):
@@ -318,6 +345,23 @@ class Settings:
              "help": "rounds of the cast-shadow loop of the HSH solver (default 0: off; see torch_hsh.ps.shadows)"})
     shadow_bias: float = _option(0.25, """height in pixels an occluder must rise above a light ray
         to cast a shadow in that loop (depth-noise margin).""", _check_shadow_bias)
+    refine_surface: int = _option(0, """rounds of the whole-surface stage after the solve (default 0: off;
+        ``True``: :data:`SURFACE_ROUNDS`): one depth map whose normals, the
+        shared BRDFs and the shadows it casts explain the images, accepted
+        only if it lowers the error of held-out lights (see
+        :mod:`torch_hsh.ps.whole_surface`; shared model, ``(L, H, W, C)`` images).""", _check_refine_surface,
+        cli={"flag": "--refine-surface", "const": SURFACE_ROUNDS,
+             "help": "run the whole-surface stage after the per-pixel solve (one depth map, shared BRDFs, cast "
+                     "shadows; kept only if it lowers the held-out-light error; see torch_hsh.ps.whole_surface)"})
+    surface_iterations: int = _option(SURFACE_ITERATIONS, "L-BFGS iterations of the depth per round of that stage.",
+                                      _check_surface_iterations)
+    surface_shadows: bool = _option(True, "that stage re-computes the cast shadows from its depth every round.")
+    surface_holdout: float = _option(0.1, """fraction of the lights that stage holds out of its fits to
+        decide whether the refined surface is kept.""", _check_surface_holdout)
+    surface_safeguard: bool = _option(True, """that stage returns its start when the held-out error rises
+        (default); ``False`` returns the refined surface either way (for
+        evaluations against ground truth; ``info["surface_accepted"]`` still
+        says what the safeguard would have done).""")
     basis: Optional[torch.Tensor] = _option(None, """optional ``(M, K)`` basis BRDFs of the shared model to use as
         they are, for example ``basis_brdfs`` of an earlier result on the
         same object (``K`` must match ``order``): the calibration (stage 3)
