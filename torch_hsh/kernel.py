@@ -42,7 +42,10 @@ autograd (chunk-wise checkpointing; double backward is supported by a full
 recomputation). Small batches and ``torch.func`` transforms use the plain
 autograd path. Outputs are always contiguous ``(..., K)``.
 
-Kernels (:func:`set_backend`, :func:`backend_status`): by default :func:`hsh` runs on
+Kernels (:func:`set_backend`, :func:`backend_status`): by default :func:`hsh` runs on the CPU
+on the fused C kernel of :mod:`torch_hsh._native` (normalisation, polar recurrence, azimuth and
+scale in one pass, written straight into the output; faster than sphericart's CPU kernel at every
+order, see docs/benchmarks.md), and on other devices (or where the C kernels are off) on
 sphericart-torch's real-SH kernel where it is installed, through the identity
 :math:`H_k(d) = \sqrt2\,\sigma_k\,Y_k(d')` with :math:`d' = (s'x, s'y, 2z - 1)`,
 :math:`s' = 2\sqrt{z/(1+z)}` and :math:`\sigma_k = -1` for odd negative m; the Helmholtz bases
@@ -609,9 +612,9 @@ def _check_group(named, dirs: bool = True) -> None:
 # --------------------------------------------------------------------------
 # Fast paths: sphericart for the HSH, fused C kernels for the isotropic basis
 # --------------------------------------------------------------------------
-#: ``"auto"``: sphericart-torch for :func:`hsh` where it is installed, and the fused C
-#: kernels (:mod:`torch_hsh._native`) for the isotropic basis on the CPU where a C compiler
-#: is found; ``"torch"``: the pure-torch recurrences above everywhere.
+#: ``"auto"``: the fused C kernels (:mod:`torch_hsh._native`) for :func:`hsh` and the isotropic
+#: basis on the CPU where a C compiler is found, sphericart-torch for :func:`hsh` elsewhere where
+#: it is installed; ``"torch"``: the pure-torch recurrences above everywhere.
 _BACKEND = {"name": os.environ.get("TORCH_HSH_BACKEND", "auto").strip().lower() or "auto"}
 _BACKENDS = ("auto", "torch")
 _SPHERICART: Dict[str, object] = {}
@@ -622,10 +625,11 @@ def set_backend(name: str) -> None:
 
     Args:
         name: ``"auto"`` (default; also the environment variable ``TORCH_HSH_BACKEND``):
-            :func:`hsh` through sphericart-torch's spherical-harmonics kernel where that
-            package is installed (``pip install torch-hsh[fast]``), and the isotropic basis
-            through fused C kernels on the CPU where a C compiler is found (compiled once,
-            cached; ``TORCH_HSH_NATIVE=0`` switches them off). Everything else, and every
+            :func:`hsh` and the isotropic basis through fused C kernels on the CPU where a
+            C compiler is found (compiled once, cached; ``TORCH_HSH_NATIVE=0`` switches them
+            off), and :func:`hsh` on other devices (or without the C kernels) through
+            sphericart-torch's spherical-harmonics kernel where that package is installed
+            (``pip install torch-hsh[fast]``). Everything else, and every
             call inside ``torch.func`` transforms or ``torch.compile``, runs the pure-torch
             kernels. ``"torch"``: the pure-torch kernels everywhere.
 
@@ -665,20 +669,23 @@ def backend_status() -> Dict[str, Optional[str]]:
     """Which kernels run under the current backend, and why a fast path is off.
 
     Returns:
-        dict with ``backend``, ``hsh`` (``"sphericart"`` or ``"torch"``), ``isotropic_cpu``
+        dict with ``backend``, ``hsh`` (``"sphericart"`` or ``"torch"``: the HSH kernel on other devices
+        than the CPU), ``hsh_cpu`` (``"native"``, ``"sphericart"`` or ``"torch"``), ``isotropic_cpu``
         (``"native"`` or ``"torch"``), ``sphericart_error`` and ``native_error``.
 
     Example:
         >>> import torch_hsh
         >>> sorted(torch_hsh.backend_status())
-        ['backend', 'hsh', 'isotropic_cpu', 'native_error', 'sphericart_error']
+        ['backend', 'hsh', 'hsh_cpu', 'isotropic_cpu', 'native_error', 'sphericart_error']
     """
     auto = _BACKEND["name"] == "auto"
     sct = _sphericart_module() if auto else None
     lib = _native.library() if auto else None
+    hsh_other = "sphericart" if sct is not None else "torch"
     return {
         "backend": _BACKEND["name"],
-        "hsh": "sphericart" if sct is not None else "torch",
+        "hsh": hsh_other,
+        "hsh_cpu": "native" if lib is not None else hsh_other,
         "isotropic_cpu": "native" if lib is not None else "torch",
         "sphericart_error": _SPHERICART.get("error") if auto else None,  # type: ignore[dict-item]
         "native_error": _native.native_status()["error"] if auto else None,
@@ -903,6 +910,61 @@ class _Remap(torch.autograd.Function):
         return gd
 
 
+@lru_cache(maxsize=None)
+def _native_hsh_spec(order: int):
+    """Tables of ``kernels.c``'s hsh_fwd / hsh_bwd: the polar recurrence of one set, and per output column its
+    polar row, its azimuth row (Re w^m at m, Im w^m at P + m) and its scale (1, sqrt 2 or (-1)^m sqrt 2)."""
+    L, A, B, c1, c2 = _native_iso_spec(order)[:5]
+    ridx, aidx, az_scale = _hsh_gather(order)
+    return L, A, B, c1, c2, ridx, aidx, [az_scale[a] for a in aidx]
+
+
+def _native_hsh_args(order: int, dt: torch.dtype):
+    L, A, B, c1, c2, kr, ka, ks = _native_hsh_spec(order)
+    cpu, i32, p = torch.device("cpu"), torch.int32, _native.ptr
+    tabs = (_const(("nat_A", order), A, cpu, dt), _const(("nat_B", order), B, cpu, dt),
+            _const(("nat_c1", order), c1, cpu, i32), _const(("nat_c2", order), c2, cpu, i32))
+    cols = (_const(("nat_hr", order), kr, cpu, i32), _const(("nat_ha", order), ka, cpu, i32),
+            _const(("nat_hs", order), ks, cpu, dt))
+    return (L, *[p(t) for t in tabs], len(kr), *[p(t) for t in cols])
+
+
+class _HshNative(torch.autograd.Function):
+    """``kernels.c`` hsh: the HSH of flat (N, 3) directions, ``(N, K)``, in one pass (see :func:`_hsh_flat_t`)."""
+
+    @staticmethod
+    def forward(ctx, d, order):
+        dc = d.contiguous()
+        n, dt = d.shape[0], d.dtype
+        out = d.new_empty((n, (order + 1) ** 2))
+        fn = getattr(_native.library(), "hsh_fwd_" + _suffix(dt))
+        _native.parallel_rows(fn, n, order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6, *_native_hsh_args(order, dt),
+                              _native.ptr(out))
+        ctx.order = order
+        ctx.save_for_backward(d)
+        return out
+
+    @staticmethod
+    def backward(ctx, gout):
+        (d,) = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph: a differentiable backward through the torch kernel
+            (d,) = _aliases((d,))
+            y = _hsh_flat_t(d, ctx.order).t()
+            if not y.requires_grad:  # order 0: a constant
+                return torch.zeros_like(d), None
+            (gd,) = torch.autograd.grad(y, [d], gout, create_graph=True, allow_unused=True)
+            return (torch.zeros_like(d) if gd is None else gd), None
+        n, dt = d.shape[0], d.dtype
+        dc = d.contiguous()
+        gd = torch.empty_like(dc)
+        g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
+        fn = getattr(_native.library(), "hsh_bwd_" + _suffix(dt))
+        _native.parallel_rows(fn, n, ctx.order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6, _horizon_eps(dt),
+                              *_native_hsh_args(ctx.order, dt), _native.ptr(g), g.stride(0), g.stride(1),
+                              _native.ptr(gd))
+        return gd, None
+
+
 class _PairProducts(torch.autograd.Function):
     """``kernels.c`` pair: ``out[:, p] = c_p (A[:, j_p] B[:, k_p] + A[:, k_p] B[:, j_p])`` (anisotropic basis)."""
 
@@ -1013,7 +1075,9 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
     lead = dirs.shape[:-1]
     K = (order + 1) ** 2
     flat = dirs.reshape(-1, 3)
-    if _hsh_fast_ok(flat):
+    if _native_ok(flat):
+        out = _HshNative.apply(flat, order)
+    elif _hsh_fast_ok(flat):
         out = _hsh_sphericart(flat, order)
     else:
         out = _run_rows(lambda d: _hsh_flat_t(d, order), K, flat)

@@ -1,9 +1,9 @@
 """Fused CPU kernels, compiled from plain C at first use and called through ctypes.
 
-The kernels in ``kernels.c`` (bodies in ``kernels_impl.h``) evaluate the isotropic Helmholtz basis (forward and backward)
-row by row, in blocks of 64 rows that stay in the L1 cache, and the direction maps that
-feed it and the sphericart HSH path. They need no Python or torch headers: the first call
-compiles them with the system C compiler (``$CC``, else ``cc``; about one second) into
+The kernels in ``kernels.c`` (bodies in ``kernels_impl.h``) evaluate the HSH and the isotropic Helmholtz
+basis (forward and backward) row by row, in blocks of 64 rows that stay in the L1 cache, the pair
+products of the anisotropic basis, and the direction map of the sphericart HSH path. They need no Python or torch headers: the first call
+compiles them with the system C compiler (``$CC``, else ``cc``; a few seconds) into
 ``$TORCH_HSH_CACHE`` (default ``~/.cache/torch_hsh``), keyed by a hash of the source, the
 compiler and the machine, and later calls load the cached library. The rows are split
 over ``torch.get_num_threads()`` threads (ctypes releases the GIL).
@@ -93,12 +93,15 @@ _INT = ctypes.c_int
 
 def _declare(lib: ctypes.CDLL) -> None:
     core = [_INT, _P, _P, _P, _P, _INT, _INT, _P, _P, _P, _P]  # CORE_ARGS of kernels_impl.h
+    hsh = [_INT, _P, _P, _P, _P, _INT, _P, _P, _P]  # HSH_ARGS
     for suf, real in (("f32", ctypes.c_float), ("f64", ctypes.c_double)):
         sigs = {
             "iso_core_fwd": [_I64, _I64] + [_P] * 6 + core + [_P],
             "iso_core_bwd": [_I64, _I64] + [_P] * 6 + core + [_P, _I64, _I64] + [_P] * 5,
             "iso_dirs_fwd": [_I64, _I64, _P, _P, real, real] + core + [_P],
             "iso_dirs_bwd": [_I64, _I64, _P, _P, real, real] + core + [_P, _I64, _I64, _P, _P],
+            "hsh_fwd": [_I64, _I64, _INT, _P, real] + hsh + [_P],
+            "hsh_bwd": [_I64, _I64, _INT, _P, real, real] + hsh + [_P, _I64, _I64, _P],
             "hsh_remap_fwd": [_I64, _I64, _P, real, real, _P, _P],
             "hsh_remap_bwd": [_I64, _I64, _P, real, real, _P, _P],
             "pair_fwd": [_I64, _I64, _P, _P, _INT, _INT, _P, _P, _P, _P],
