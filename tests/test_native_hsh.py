@@ -192,3 +192,52 @@ def test_hsh_native_switched_off_in_a_subprocess(tmp_path):
     v, gs = (float(t) for t in values.split())
     assert abs(v - float(y.sum())) < 1e-12 and abs(gs - float(g.sum())) < 1e-10
     assert not list(tmp_path.iterdir())  # nothing compiled
+
+
+def test_non_finite_inputs_flagged_by_the_kernels():
+    """The C kernels flag non-finite inputs (the torch scan is skipped on that path) and the full check
+    then names the argument; a finite input whose |d|^2 overflows is flagged but passes the check."""
+    d = _dirs(20_000, 16, dtype=torch.float32)  # row 15_000 lies in the second thread's range
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        _check_flagged(d)
+    finally:
+        torch.set_num_threads(old)
+
+
+def _check_flagged(d):
+    for bad in (float("nan"), float("inf"), float("-inf")):
+        x = d.clone()
+        x[15_000, 2] = bad
+        with pytest.raises(ValueError, match="`dirs` contains"):
+            torch_hsh.hsh(x, 2)
+        with pytest.raises(ValueError, match="`wo` contains"):
+            torch_hsh.helmholtz_isotropic(d, x, 2)
+        with pytest.raises(ValueError, match="`wi` contains"):
+            torch_hsh.helmholtz_isotropic(x, x, 2)
+    big = d.clone()
+    big[3] = torch.tensor([0.0, 3e19, 4e19])  # |d|^2 overflows float32; the values are finite
+    assert torch.isfinite(torch_hsh.hsh(big, 2)).all()
+    assert torch.isfinite(torch_hsh.helmholtz_isotropic(big, d, 2)).all()
+    torch_hsh.set_validation(False)
+    try:
+        x = d.clone()
+        x[0, 0] = float("nan")
+        torch_hsh.hsh(x, 2)  # no check
+        torch_hsh.helmholtz_isotropic(x, d, 2)
+    finally:
+        torch_hsh.set_validation(True)
+
+
+def test_native_path_skips_the_torch_scan(monkeypatch):
+    scans = []
+    real = torch.isfinite
+    monkeypatch.setattr(torch, "isfinite", lambda t: scans.append(t.numel()) or real(t))
+    d = _dirs(1000, 17)
+    torch_hsh.hsh(d, 2)
+    torch_hsh.helmholtz_isotropic(d, d.flip(0), 2)
+    assert scans == []
+    monkeypatch.setattr(K, "_native_ok", lambda t: False)
+    torch_hsh.hsh(d, 2)
+    assert scans  # the other paths scan first

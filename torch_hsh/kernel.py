@@ -71,7 +71,6 @@ from . import _native
 from ._checks import (
     MAX_ANISOTROPIC_ORDER,
     broadcast_shapes,
-    check_dirs,
     check_order,
     check_same,
     check_tensor,
@@ -596,16 +595,28 @@ def _run_rows(fn, K: int, *inputs: torch.Tensor) -> torch.Tensor:
     return _RowChunked.apply(lambda *xs: fn(*xs).t(), K, rows, *inputs)
 
 
-def _check_group(named, dirs: bool = True) -> None:
-    """Type checks, then device/dtype agreement, then per-tensor shape/value checks."""
+def _check_group(named, dirs: bool = True, defer_values: bool = False) -> bool:
+    """Type checks, then device/dtype agreement, then per-tensor shape/value checks.
+
+    ``defer_values``: where the fused C kernels will run (:func:`_native_ok`), skip the scan for
+    non-finite values; the kernel flags them, and :func:`_recheck` then runs the full check. Returns
+    whether the scan was deferred. (The scan is a torch reduction over the inputs: a pass over them,
+    after which torch's OpenMP workers spin beside the kernel's threads.)
+    """
     for nm, t in named:
         if not isinstance(t, torch.Tensor):
             raise TypeError(f"`{nm}` must be a torch.Tensor, got {type(t).__name__}")
     check_same(named)
+    deferred = defer_values and _native_ok(named[0][1])
     for nm, t in named:
-        if dirs:
-            check_dirs(t, nm)
-        else:
+        check_tensor(t, nm, last_dim=3 if dirs else None, min_dims=1 if dirs else 0, allow_nonfinite=deferred)
+    return deferred
+
+
+def _recheck(flagged: bool, named) -> None:
+    """The deferred finiteness check, where a C kernel saw a non-finite input (raises ValueError)."""
+    if flagged:
+        for nm, t in named:
             check_tensor(t, nm)
 
 
@@ -833,8 +844,9 @@ class _IsoDirs(torch.autograd.Function):
         K, tab = _iso_core_args(order, dt)
         out = wi.new_empty((n, K))
         fn = getattr(_native.library(), "iso_dirs_fwd_" + _suffix(dt))
-        _native.parallel_rows(fn, n, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
-                              _horizon_eps(dt), *tab, _native.ptr(out))
+        bad = _native.parallel_rows(fn, n, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
+                                    _horizon_eps(dt), *tab, _native.ptr(out))
+        _recheck(bad, [("wi", wi), ("wo", wo)])
         ctx.order = order
         ctx.save_for_backward(wi, wo)
         return out
@@ -938,8 +950,9 @@ class _HshNative(torch.autograd.Function):
         n, dt = d.shape[0], d.dtype
         out = d.new_empty((n, (order + 1) ** 2))
         fn = getattr(_native.library(), "hsh_fwd_" + _suffix(dt))
-        _native.parallel_rows(fn, n, order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6, *_native_hsh_args(order, dt),
-                              _native.ptr(out))
+        bad = _native.parallel_rows(fn, n, order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6,
+                                    *_native_hsh_args(order, dt), _native.ptr(out))
+        _recheck(bad, [("dirs", d)])
         ctx.order = order
         ctx.save_for_backward(d)
         return out
@@ -1070,13 +1083,13 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
         >>> abs(float(y[0]) - (1 / (2 * math.pi)) ** 0.5) < 1e-6  # H_0^0 = 1/sqrt(2 pi)
         True
     """
-    check_dirs(dirs, "dirs")
+    _check_group([("dirs", dirs)], defer_values=True)
     order = check_order(order)
     lead = dirs.shape[:-1]
     K = (order + 1) ** 2
     flat = dirs.reshape(-1, 3)
     if _native_ok(flat):
-        out = _HshNative.apply(flat, order)
+        out = _HshNative.apply(flat, order)  # checks the values that the kernel flags
     elif _hsh_fast_ok(flat):
         out = _hsh_sphericart(flat, order)
     else:
@@ -1111,7 +1124,7 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
         >>> torch_hsh.helmholtz_isotropic(wi, wo, 3).shape
         torch.Size([10, 20])
     """
-    _check_group([("wi", wi), ("wo", wo)])
+    _check_group([("wi", wi), ("wo", wo)], defer_values=True)
     order = check_order(order)
     K = (order + 1) * (order + 2) * (order + 3) // 6
     # fused C kernels (geometry, then the basis), else the torch kernel in row chunks

@@ -145,11 +145,15 @@ def ptr(t: torch.Tensor) -> int:
     return t.data_ptr()
 
 
-def parallel_rows(fn: Callable[..., int], n: int, *args) -> None:
+def parallel_rows(fn: Callable[..., int], n: int, *args) -> bool:
     """Call ``fn(r0, r1, *args)`` over row ranges that split ``[0, n)`` across torch's threads.
 
+    Returns:
+        True where a kernel saw a non-finite input (return code 2 of the forward kernels that
+        normalise directions: the caller then runs the full input check, which names the argument).
+
     Raises:
-        MemoryError: where a kernel could not allocate its scratch tables.
+        MemoryError: where a kernel could not allocate its scratch tables (return code 1).
     """
     global _pool
     nt = min(torch.get_num_threads(), max(1, n // _MIN_ROWS_PER_THREAD))
@@ -165,5 +169,6 @@ def parallel_rows(fn: Callable[..., int], n: int, *args) -> None:
         starts = list(range(0, n, step))
         futs = [_pool.submit(fn, r0, min(n, r0 + step), *args) for r0 in starts[1:]]
         codes = [fn(0, min(n, step), *args)] + [f.result() for f in futs]  # the caller takes the first range
-    if any(codes):
+    if 1 in codes:
         raise MemoryError(f"{fn.__name__}: could not allocate the kernel's scratch tables")
+    return 2 in codes

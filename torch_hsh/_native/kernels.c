@@ -24,6 +24,7 @@
  *   hsh_remap_{fwd,bwd}: d -> d' = (s x, s y, 2 z - 1), s = 2 sqrt(z / (1 + z)) of the
  *     unit direction (the map that turns real spherical harmonics into HSH), and the flag.
  */
+#include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -138,15 +139,19 @@ LOAD_ROWS(double, f64)
 #define T float
 #define SUF(name) name##_f32
 #define SQRT sqrtf
+#define TMAX FLT_MAX
 #include "kernels_impl.h"
 #undef T
 #undef SUF
 #undef SQRT
+#undef TMAX
 
 #define T double
 #define SUF(name) name##_f64
 #define SQRT sqrt
+#define TMAX DBL_MAX
 #include "kernels_impl.h"
 #undef T
 #undef SUF
 #undef SQRT
+#undef TMAX
