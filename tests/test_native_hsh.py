@@ -241,3 +241,31 @@ def test_native_path_skips_the_torch_scan(monkeypatch):
     monkeypatch.setattr(K, "_native_ok", lambda t: False)
     torch_hsh.hsh(d, 2)
     assert scans  # the other paths scan first
+
+
+def test_parallel_rows_covers_every_row_once_in_block_aligned_ranges():
+    from torch_hsh import _native
+
+    seen = []
+
+    def fn(r0, r1, code):
+        seen.append((r0, r1))
+        return code if r0 == 0 else 0
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        for n in (1, 2047, 5000, 100_003):
+            seen.clear()
+            assert _native.parallel_rows(fn, n, 0) is False
+            rows = sorted(seen)
+            assert rows[0][0] == 0 and rows[-1][1] == n
+            assert all(a[1] == b[0] for a, b in zip(rows, rows[1:]))  # contiguous, no overlap
+            assert all(r0 % _native._BLOCK == 0 for r0, _ in rows)
+            if n >= 100_000:
+                assert len(rows) > 3  # more ranges than threads: taken dynamically
+        assert _native.parallel_rows(fn, 100_003, 2) is True
+        with pytest.raises(MemoryError):
+            _native.parallel_rows(fn, 100_003, 1)
+    finally:
+        torch.set_num_threads(old)

@@ -441,6 +441,8 @@ def _iso_kernel_t(zi, zo, a, rho, sio, valid, order: int, same: bool = False) ->
 
 
 def _broadcast_pair(wi: torch.Tensor, wo: torch.Tensor):
+    if wi.shape == wo.shape:  # the common case, without torch.broadcast_shapes (tens of microseconds)
+        return wi.shape[:-1], wi.reshape(-1, 3), wo.reshape(-1, 3)
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
     wi = wi.expand(*lead, 3).reshape(-1, 3)
     wo = wo.expand(*lead, 3).reshape(-1, 3)
@@ -767,10 +769,20 @@ def _native_iso_tables(order: int, dt: torch.dtype):
     )
 
 
+#: The kernels' table arguments (raw pointers) per (kernel, order, dtype). The tables they point to are
+#: cached constants that live as long as the process (``_DEVICE_CACHE``); only the native paths, which
+#: run outside torch.func and torch.compile, fill this.
+_NATIVE_ARGS: Dict[tuple, tuple] = {}
+
+
 def _iso_core_args(order: int, dt: torch.dtype):
-    L, A, B, c1, c2, K, ka, kb, kq, kc = _native_iso_tables(order, dt)
-    p = _native.ptr
-    return K, (L, p(A), p(B), p(c1), p(c2), order, K, p(ka), p(kb), p(kq), p(kc))
+    key = ("iso", order, dt)
+    args = _NATIVE_ARGS.get(key)
+    if args is None:
+        L, A, B, c1, c2, K, ka, kb, kq, kc = _native_iso_tables(order, dt)
+        p = _native.ptr
+        args = _NATIVE_ARGS[key] = (K, (L, p(A), p(B), p(c1), p(c2), order, K, p(ka), p(kb), p(kq), p(kc)))
+    return args
 
 
 def _aliases(xs):
@@ -932,6 +944,14 @@ def _native_hsh_spec(order: int):
 
 
 def _native_hsh_args(order: int, dt: torch.dtype):
+    key = ("hsh", order, dt)
+    args = _NATIVE_ARGS.get(key)
+    if args is None:
+        args = _NATIVE_ARGS[key] = _native_hsh_ptrs(order, dt)
+    return args
+
+
+def _native_hsh_ptrs(order: int, dt: torch.dtype):
     L, A, B, c1, c2, kr, ka, ks = _native_hsh_spec(order)
     cpu, i32, p = torch.device("cpu"), torch.int32, _native.ptr
     tabs = (_const(("nat_A", order), A, cpu, dt), _const(("nat_B", order), B, cpu, dt),

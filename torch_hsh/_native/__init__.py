@@ -33,6 +33,7 @@ _SRC = Path(__file__).with_name("kernels.c")
 _SOURCES = (_SRC, Path(__file__).with_name("kernels_impl.h"))
 _BLOCK = 64  # rows per block in kernels.c (BS)
 _MIN_ROWS_PER_THREAD = 2048
+_CHUNKS_PER_THREAD = 4  # row ranges per thread (taken dynamically, see _run_chunks)
 
 _state: Dict[str, object] = {"lib": None, "tried": False, "error": None, "path": None}
 _lock = threading.Lock()
@@ -155,20 +156,35 @@ def parallel_rows(fn: Callable[..., int], n: int, *args) -> bool:
     Raises:
         MemoryError: where a kernel could not allocate its scratch tables (return code 1).
     """
-    global _pool
     nt = min(torch.get_num_threads(), max(1, n // _MIN_ROWS_PER_THREAD))
     if nt <= 1:
         codes = [fn(0, n, *args)]
     else:
-        # a pool inherited through fork() has no threads in the child: make a new one there
-        if _pool is None or _pool._max_workers < nt or _state.get("pool_pid") != os.getpid():
-            _pool = ThreadPoolExecutor(max_workers=max(nt, os.cpu_count() or 1), thread_name_prefix="torch_hsh")
-            _state["pool_pid"] = os.getpid()
-        step = -(-n // nt)
-        step = -(-step // _BLOCK) * _BLOCK
-        starts = list(range(0, n, step))
-        futs = [_pool.submit(fn, r0, min(n, r0 + step), *args) for r0 in starts[1:]]
-        codes = [fn(0, min(n, step), *args)] + [f.result() for f in futs]  # the caller takes the first range
+        codes = _run_chunks(fn, n, nt, args)
     if 1 in codes:
         raise MemoryError(f"{fn.__name__}: could not allocate the kernel's scratch tables")
     return 2 in codes
+
+
+def _run_chunks(fn: Callable[..., int], n: int, nt: int, args: tuple) -> List[int]:
+    """``fn`` over about ``_CHUNKS_PER_THREAD * nt`` row ranges (multiples of the block size, so that
+    the blocks, and the values, do not depend on the split), taken in turn by the caller and ``nt - 1``
+    pool threads: a thread slowed down by another process (or by torch's OpenMP workers, which spin for
+    a while after a torch operation) takes fewer ranges instead of holding the others up."""
+    global _pool
+    # a pool inherited through fork() has no threads in the child: make a new one there
+    if _pool is None or _pool._max_workers < nt or _state.get("pool_pid") != os.getpid():
+        _pool = ThreadPoolExecutor(max_workers=max(nt, os.cpu_count() or 1), thread_name_prefix="torch_hsh")
+        _state["pool_pid"] = os.getpid()
+    step = max(_MIN_ROWS_PER_THREAD, -(-n // (nt * _CHUNKS_PER_THREAD)))
+    step = -(-step // _BLOCK) * _BLOCK
+    ranges = iter([(r0, min(n, r0 + step)) for r0 in range(0, n, step)])
+
+    def take() -> List[int]:  # next() of a list iterator is atomic under the GIL
+        return [fn(r0, r1, *args) for r0, r1 in ranges]
+
+    futs = [_pool.submit(take) for _ in range(nt - 1)]
+    codes = take()
+    for f in futs:
+        codes += f.result()
+    return codes
