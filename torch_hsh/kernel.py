@@ -781,8 +781,14 @@ def _iso_core_args(order: int, dt: torch.dtype):
     if args is None:
         L, A, B, c1, c2, K, ka, kb, kq, kc = _native_iso_tables(order, dt)
         p = _native.ptr
-        args = _NATIVE_ARGS[key] = (K, (L, p(A), p(B), p(c1), p(c2), order, K, p(ka), p(kb), p(kq), p(kc)))
+        args = (K, (L, p(A), p(B), p(c1), p(c2), order, K, p(ka), p(kb), p(kq), p(kc)))
+        _remember_args(key, args)
     return args
+
+
+def _remember_args(key: tuple, args: tuple) -> None:
+    if not (_functorch_active() or _compiling()):  # only then are the tables cached (see _const)
+        _NATIVE_ARGS[key] = args
 
 
 def _aliases(xs):
@@ -947,7 +953,8 @@ def _native_hsh_args(order: int, dt: torch.dtype):
     key = ("hsh", order, dt)
     args = _NATIVE_ARGS.get(key)
     if args is None:
-        args = _NATIVE_ARGS[key] = _native_hsh_ptrs(order, dt)
+        args = _native_hsh_ptrs(order, dt)
+        _remember_args(key, args)
     return args
 
 
