@@ -205,11 +205,14 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true", help="a few seconds: small sizes, orders 2 and 4, 3 repeats")
+    ap.add_argument("--quick", action="store_true",
+                    help="a few seconds: small sizes, 3 repeats, orders 2 and 4 unless given")
     args = ap.parse_args(argv)
     if args.quick:
         args.n, args.pairs, args.repeats, args.warmup = 4000, 2000, 3, 1
-        args.orders, args.iso_orders, args.aniso_orders = [2, 4], [2, 4], [1, 2]
+        for name, quick in (("orders", [2, 4]), ("iso_orders", [2, 4]), ("aniso_orders", [1, 2])):
+            if getattr(args, name) == ap.get_default(name):  # order lists given explicitly are kept
+                setattr(args, name, quick)
     if min(args.n, args.pairs, args.repeats, args.threads) < 1 or args.warmup < 0:
         ap.error("--n, --pairs, --repeats and --threads must be positive, --warmup non-negative")
     device = torch.device(args.device)
