@@ -1,12 +1,13 @@
 """Fused CPU kernels, compiled from plain C at first use and called through ctypes.
 
-The kernels in ``kernels.c`` (bodies in ``kernels_impl.h``) evaluate the HSH and the isotropic Helmholtz
-basis (forward and backward) row by row, in blocks of 64 rows that stay in the L1 cache, the pair
-products of the anisotropic basis, and the direction map of the sphericart HSH path. They need no Python or torch headers: the first call
-compiles them with the system C compiler (``$CC``, else ``cc``; a few seconds) into
-``$TORCH_HSH_CACHE`` (default ``~/.cache/torch_hsh``), keyed by a hash of the source, the
-compiler and the machine, and later calls load the cached library. The rows are split
-over ``torch.get_num_threads()`` threads (ctypes releases the GIL).
+The kernels in ``kernels.c`` (bodies in ``kernels_impl.h``) evaluate the HSH and the isotropic
+Helmholtz basis (forward and backward) row by row, in blocks of 64 rows that stay in the L1 cache,
+the pair products of the anisotropic basis, and the direction map of the sphericart HSH path. They
+need no Python or torch headers: the first call compiles them with the system C compiler (``$CC``,
+else ``cc``; a few seconds) into ``$TORCH_HSH_CACHE`` (default ``~/.cache/torch_hsh``), keyed by a
+hash of the source, the compiler and the machine, and later calls load the cached library. The rows
+are split into block-aligned ranges that ``torch.get_num_threads()`` threads take in turn (ctypes
+releases the GIL); calls of fewer than 4,096 rows run on the caller's thread.
 
 Where no compiler is found, the compilation fails, or ``TORCH_HSH_NATIVE=0`` is set, the
 pure-torch kernels of :mod:`torch_hsh.kernel` run instead (same values to rounding).
