@@ -44,7 +44,7 @@ autograd path. Outputs are always contiguous ``(..., K)``.
 
 Kernels (:func:`set_backend`, :func:`backend_status`): by default :func:`hsh` runs on the CPU
 on the fused C kernel of :mod:`torch_hsh._native` (normalisation, polar recurrence, azimuth and
-scale in one pass, written straight into the output; faster than sphericart's CPU kernel at every
+scale in one pass, written straight into the output; faster than the sphericart path at every
 order, see docs/benchmarks.md), and on other devices (or where the C kernels are off) on
 sphericart-torch's real-SH kernel where it is installed, through the identity
 :math:`H_k(d) = \sqrt2\,\sigma_k\,Y_k(d')` with :math:`d' = (s'x, s'y, 2z - 1)`,
