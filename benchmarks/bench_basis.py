@@ -25,6 +25,8 @@ Usage::
     python benchmarks/bench_basis.py [--threads 2] [--n 200000] [--pairs 100000]
     python benchmarks/bench_basis.py --quick        # seconds: small sizes, 3 repeats
     python benchmarks/bench_basis.py --device cuda  # with device synchronisation
+    python benchmarks/bench_basis.py --backend auto --sections hsh --orders 2 4      # only some rows
+    python benchmarks/bench_basis.py --backend auto --sections bases --iso-orders 2 4 --aniso-orders
 """
 from __future__ import annotations
 
@@ -185,6 +187,9 @@ def summary(results: List[dict]) -> None:
                   flush=True)
 
 
+SECTIONS = ("hsh", "bases", "training")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--threads", type=int, default=2)
@@ -192,17 +197,22 @@ def main(argv=None) -> int:
     ap.add_argument("--n", type=int, default=200_000, help="directions for the HSH timings")
     ap.add_argument("--pairs", type=int, default=100_000, help="direction pairs for the Helmholtz-basis timings")
     ap.add_argument("--orders", type=int, nargs="+", default=[2, 4, 8, 12], help="HSH orders")
-    ap.add_argument("--iso-orders", type=int, nargs="+", default=[2, 4, 8])
-    ap.add_argument("--aniso-orders", type=int, nargs="+", default=[1, 2, 4])
+    ap.add_argument("--iso-orders", type=int, nargs="*", default=[2, 4, 8], help="none: skip the isotropic rows")
+    ap.add_argument("--aniso-orders", type=int, nargs="*", default=[1, 2, 4], help="none: skip the anisotropic rows")
+    ap.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=list(SECTIONS),
+                    help="the sections to run (default all)")
     ap.add_argument("--backend", nargs="+", default=["auto", "torch"], choices=["auto", "torch"])
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true", help="a few seconds: small sizes, orders 2 and 4, 3 repeats")
+    ap.add_argument("--quick", action="store_true",
+                    help="a few seconds: small sizes, 3 repeats, orders 2 and 4 unless given")
     args = ap.parse_args(argv)
     if args.quick:
         args.n, args.pairs, args.repeats, args.warmup = 4000, 2000, 3, 1
-        args.orders, args.iso_orders, args.aniso_orders = [2, 4], [2, 4], [1, 2]
+        for name, quick in (("orders", [2, 4]), ("iso_orders", [2, 4]), ("aniso_orders", [1, 2])):
+            if getattr(args, name) == ap.get_default(name):  # order lists given explicitly are kept
+                setattr(args, name, quick)
     if min(args.n, args.pairs, args.repeats, args.threads) < 1 or args.warmup < 0:
         ap.error("--n, --pairs, --repeats and --threads must be positive, --warmup non-negative")
     device = torch.device(args.device)
@@ -221,9 +231,12 @@ def main(argv=None) -> int:
     try:
         for backend in args.backend:
             torch_hsh.set_backend(backend)
-            section_hsh(args, device, o3, sct, backend, results)
-            section_bases(args, device, backend, results)
-            section_training(args, device, backend, results)
+            if "hsh" in args.sections:
+                section_hsh(args, device, o3, sct, backend, results)
+            if "bases" in args.sections:
+                section_bases(args, device, backend, results)
+            if "training" in args.sections:
+                section_training(args, device, backend, results)
     finally:
         torch_hsh.set_backend("auto")
     summary(results)

@@ -85,9 +85,10 @@ def test_status_and_bad_backend(restore_backend):
     assert st["backend"] == "auto"
     assert st["hsh"] in ("sphericart", "torch") and st["isotropic_cpu"] in ("native", "torch")
     assert (st["hsh"] == "sphericart") == HAS_SPHERICART
+    assert st["hsh_cpu"] == ("native" if HAS_NATIVE else st["hsh"])
     torch_hsh.set_backend("torch")
     st = torch_hsh.backend_status()
-    assert (st["hsh"], st["isotropic_cpu"]) == ("torch", "torch")
+    assert (st["hsh"], st["hsh_cpu"], st["isotropic_cpu"]) == ("torch", "torch", "torch")
     with pytest.raises(ValueError, match="`name` must be one of"):
         torch_hsh.set_backend("cuda")
     with pytest.raises(ValueError, match="`name`"):

@@ -42,3 +42,16 @@ def test_bench_basis_quick_prints_every_row():
         assert 0.99 * lo - 0.01 <= float(r1) <= 1.01 * hi + 0.01
     assert len(re.findall(r"ms per step", text)) == 4
     assert "speed-up of the default (auto) over the pure-torch kernels" in text
+
+
+@pytest.mark.slow
+def test_bench_basis_sections_select_rows():
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_basis.py"), "--quick", "--threads", "1",
+                          "--backend", "auto", "--sections", "hsh", "bases", "--orders", "2", "--iso-orders", "2",
+                          "--aniso-orders"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    text = out.stdout
+    assert "== [auto] hsh" in text and "== [torch]" not in text and "ms per step" not in text
+    assert len(re.findall(r"^\s+2\s+(fwd|fwd\+bwd)\s+[\d.]+", text, re.M)) == 2
+    assert len(re.findall(r"^\s*isotropic\s+2\s", text, re.M)) == 1 and "anisotropic" not in text.split("Helmholtz")[1]

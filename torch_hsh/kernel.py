@@ -42,7 +42,10 @@ autograd (chunk-wise checkpointing; double backward is supported by a full
 recomputation). Small batches and ``torch.func`` transforms use the plain
 autograd path. Outputs are always contiguous ``(..., K)``.
 
-Kernels (:func:`set_backend`, :func:`backend_status`): by default :func:`hsh` runs on
+Kernels (:func:`set_backend`, :func:`backend_status`): by default :func:`hsh` runs on the CPU
+on the fused C kernel of :mod:`torch_hsh._native` (normalisation, polar recurrence, azimuth and
+scale in one pass, written straight into the output; faster than the sphericart path at every
+order, see docs/benchmarks.md), and on other devices (or where the C kernels are off) on
 sphericart-torch's real-SH kernel where it is installed, through the identity
 :math:`H_k(d) = \sqrt2\,\sigma_k\,Y_k(d')` with :math:`d' = (s'x, s'y, 2z - 1)`,
 :math:`s' = 2\sqrt{z/(1+z)}` and :math:`\sigma_k = -1` for odd negative m; the Helmholtz bases
@@ -68,7 +71,6 @@ from . import _native
 from ._checks import (
     MAX_ANISOTROPIC_ORDER,
     broadcast_shapes,
-    check_dirs,
     check_order,
     check_same,
     check_tensor,
@@ -439,6 +441,8 @@ def _iso_kernel_t(zi, zo, a, rho, sio, valid, order: int, same: bool = False) ->
 
 
 def _broadcast_pair(wi: torch.Tensor, wo: torch.Tensor):
+    if wi.shape == wo.shape:  # the common case, without torch.broadcast_shapes (tens of microseconds)
+        return wi.shape[:-1], wi.reshape(-1, 3), wo.reshape(-1, 3)
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
     wi = wi.expand(*lead, 3).reshape(-1, 3)
     wo = wo.expand(*lead, 3).reshape(-1, 3)
@@ -593,25 +597,37 @@ def _run_rows(fn, K: int, *inputs: torch.Tensor) -> torch.Tensor:
     return _RowChunked.apply(lambda *xs: fn(*xs).t(), K, rows, *inputs)
 
 
-def _check_group(named, dirs: bool = True) -> None:
-    """Type checks, then device/dtype agreement, then per-tensor shape/value checks."""
+def _check_group(named, dirs: bool = True, defer_values: bool = False) -> bool:
+    """Type checks, then device/dtype agreement, then per-tensor shape/value checks.
+
+    ``defer_values``: where the fused C kernels will run (:func:`_native_ok`), skip the scan for
+    non-finite values; the kernel flags them, and :func:`_recheck` then runs the full check. Returns
+    whether the scan was deferred. (The scan is a torch reduction over the inputs: a pass over them,
+    after which torch's OpenMP workers spin beside the kernel's threads.)
+    """
     for nm, t in named:
         if not isinstance(t, torch.Tensor):
             raise TypeError(f"`{nm}` must be a torch.Tensor, got {type(t).__name__}")
     check_same(named)
+    deferred = defer_values and _native_ok(named[0][1])
     for nm, t in named:
-        if dirs:
-            check_dirs(t, nm)
-        else:
+        check_tensor(t, nm, last_dim=3 if dirs else None, min_dims=1 if dirs else 0, allow_nonfinite=deferred)
+    return deferred
+
+
+def _recheck(flagged: bool, named) -> None:
+    """The deferred finiteness check, where a C kernel saw a non-finite input (raises ValueError)."""
+    if flagged:
+        for nm, t in named:
             check_tensor(t, nm)
 
 
 # --------------------------------------------------------------------------
 # Fast paths: sphericart for the HSH, fused C kernels for the isotropic basis
 # --------------------------------------------------------------------------
-#: ``"auto"``: sphericart-torch for :func:`hsh` where it is installed, and the fused C
-#: kernels (:mod:`torch_hsh._native`) for the isotropic basis on the CPU where a C compiler
-#: is found; ``"torch"``: the pure-torch recurrences above everywhere.
+#: ``"auto"``: the fused C kernels (:mod:`torch_hsh._native`) for :func:`hsh` and the isotropic
+#: basis on the CPU where a C compiler is found, sphericart-torch for :func:`hsh` elsewhere where
+#: it is installed; ``"torch"``: the pure-torch recurrences above everywhere.
 _BACKEND = {"name": os.environ.get("TORCH_HSH_BACKEND", "auto").strip().lower() or "auto"}
 _BACKENDS = ("auto", "torch")
 _SPHERICART: Dict[str, object] = {}
@@ -622,10 +638,11 @@ def set_backend(name: str) -> None:
 
     Args:
         name: ``"auto"`` (default; also the environment variable ``TORCH_HSH_BACKEND``):
-            :func:`hsh` through sphericart-torch's spherical-harmonics kernel where that
-            package is installed (``pip install torch-hsh[fast]``), and the isotropic basis
-            through fused C kernels on the CPU where a C compiler is found (compiled once,
-            cached; ``TORCH_HSH_NATIVE=0`` switches them off). Everything else, and every
+            :func:`hsh` and the isotropic basis through fused C kernels on the CPU where a
+            C compiler is found (compiled once, cached; ``TORCH_HSH_NATIVE=0`` switches them
+            off), and :func:`hsh` on other devices (or without the C kernels) through
+            sphericart-torch's spherical-harmonics kernel where that package is installed
+            (``pip install torch-hsh[fast]``). Everything else, and every
             call inside ``torch.func`` transforms or ``torch.compile``, runs the pure-torch
             kernels. ``"torch"``: the pure-torch kernels everywhere.
 
@@ -665,20 +682,23 @@ def backend_status() -> Dict[str, Optional[str]]:
     """Which kernels run under the current backend, and why a fast path is off.
 
     Returns:
-        dict with ``backend``, ``hsh`` (``"sphericart"`` or ``"torch"``), ``isotropic_cpu``
+        dict with ``backend``, ``hsh`` (``"sphericart"`` or ``"torch"``: the HSH kernel on other devices
+        than the CPU), ``hsh_cpu`` (``"native"``, ``"sphericart"`` or ``"torch"``), ``isotropic_cpu``
         (``"native"`` or ``"torch"``), ``sphericart_error`` and ``native_error``.
 
     Example:
         >>> import torch_hsh
         >>> sorted(torch_hsh.backend_status())
-        ['backend', 'hsh', 'isotropic_cpu', 'native_error', 'sphericart_error']
+        ['backend', 'hsh', 'hsh_cpu', 'isotropic_cpu', 'native_error', 'sphericart_error']
     """
     auto = _BACKEND["name"] == "auto"
     sct = _sphericart_module() if auto else None
     lib = _native.library() if auto else None
+    hsh_other = "sphericart" if sct is not None else "torch"
     return {
         "backend": _BACKEND["name"],
-        "hsh": "sphericart" if sct is not None else "torch",
+        "hsh": hsh_other,
+        "hsh_cpu": "native" if lib is not None else hsh_other,
         "isotropic_cpu": "native" if lib is not None else "torch",
         "sphericart_error": _SPHERICART.get("error") if auto else None,  # type: ignore[dict-item]
         "native_error": _native.native_status()["error"] if auto else None,
@@ -749,10 +769,26 @@ def _native_iso_tables(order: int, dt: torch.dtype):
     )
 
 
+#: The kernels' table arguments (raw pointers) per (kernel, order, dtype). The tables they point to are
+#: cached constants that live as long as the process (``_DEVICE_CACHE``); only the native paths, which
+#: run outside torch.func and torch.compile, fill this.
+_NATIVE_ARGS: Dict[tuple, tuple] = {}
+
+
 def _iso_core_args(order: int, dt: torch.dtype):
-    L, A, B, c1, c2, K, ka, kb, kq, kc = _native_iso_tables(order, dt)
-    p = _native.ptr
-    return K, (L, p(A), p(B), p(c1), p(c2), order, K, p(ka), p(kb), p(kq), p(kc))
+    key = ("iso", order, dt)
+    args = _NATIVE_ARGS.get(key)
+    if args is None:
+        L, A, B, c1, c2, K, ka, kb, kq, kc = _native_iso_tables(order, dt)
+        p = _native.ptr
+        args = (K, (L, p(A), p(B), p(c1), p(c2), order, K, p(ka), p(kb), p(kq), p(kc)))
+        _remember_args(key, args)
+    return args
+
+
+def _remember_args(key: tuple, args: tuple) -> None:
+    if not (_functorch_active() or _compiling()):  # only then are the tables cached (see _const)
+        _NATIVE_ARGS[key] = args
 
 
 def _aliases(xs):
@@ -826,8 +862,9 @@ class _IsoDirs(torch.autograd.Function):
         K, tab = _iso_core_args(order, dt)
         out = wi.new_empty((n, K))
         fn = getattr(_native.library(), "iso_dirs_fwd_" + _suffix(dt))
-        _native.parallel_rows(fn, n, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
-                              _horizon_eps(dt), *tab, _native.ptr(out))
+        bad = _native.parallel_rows(fn, n, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
+                                    _horizon_eps(dt), *tab, _native.ptr(out))
+        _recheck(bad, [("wi", wi), ("wo", wo)])
         ctx.order = order
         ctx.save_for_backward(wi, wo)
         return out
@@ -901,6 +938,71 @@ class _Remap(torch.autograd.Function):
         _native.parallel_rows(fn, n, _native.ptr(dc), torch.finfo(dt).tiny * 1e6, _horizon_eps(dt),
                               _native.ptr(g), _native.ptr(gd))
         return gd
+
+
+@lru_cache(maxsize=None)
+def _native_hsh_spec(order: int):
+    """Tables of ``kernels.c``'s hsh_fwd / hsh_bwd: the polar recurrence of one set, and per output column its
+    polar row, its azimuth row (Re w^m at m, Im w^m at P + m) and its scale (1, sqrt 2 or (-1)^m sqrt 2)."""
+    L, A, B, c1, c2 = _native_iso_spec(order)[:5]
+    ridx, aidx, az_scale = _hsh_gather(order)
+    return L, A, B, c1, c2, ridx, aidx, [az_scale[a] for a in aidx]
+
+
+def _native_hsh_args(order: int, dt: torch.dtype):
+    key = ("hsh", order, dt)
+    args = _NATIVE_ARGS.get(key)
+    if args is None:
+        args = _native_hsh_ptrs(order, dt)
+        _remember_args(key, args)
+    return args
+
+
+def _native_hsh_ptrs(order: int, dt: torch.dtype):
+    L, A, B, c1, c2, kr, ka, ks = _native_hsh_spec(order)
+    cpu, i32, p = torch.device("cpu"), torch.int32, _native.ptr
+    tabs = (_const(("nat_A", order), A, cpu, dt), _const(("nat_B", order), B, cpu, dt),
+            _const(("nat_c1", order), c1, cpu, i32), _const(("nat_c2", order), c2, cpu, i32))
+    cols = (_const(("nat_hr", order), kr, cpu, i32), _const(("nat_ha", order), ka, cpu, i32),
+            _const(("nat_hs", order), ks, cpu, dt))
+    return (L, *[p(t) for t in tabs], len(kr), *[p(t) for t in cols])
+
+
+class _HshNative(torch.autograd.Function):
+    """``kernels.c`` hsh: the HSH of flat (N, 3) directions, ``(N, K)``, in one pass (see :func:`_hsh_flat_t`)."""
+
+    @staticmethod
+    def forward(ctx, d, order):
+        dc = d.contiguous()
+        n, dt = d.shape[0], d.dtype
+        out = d.new_empty((n, (order + 1) ** 2))
+        fn = getattr(_native.library(), "hsh_fwd_" + _suffix(dt))
+        bad = _native.parallel_rows(fn, n, order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6,
+                                    *_native_hsh_args(order, dt), _native.ptr(out))
+        _recheck(bad, [("dirs", d)])
+        ctx.order = order
+        ctx.save_for_backward(d)
+        return out
+
+    @staticmethod
+    def backward(ctx, gout):
+        (d,) = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph: a differentiable backward through the torch kernel
+            (d,) = _aliases((d,))
+            y = _hsh_flat_t(d, ctx.order).t()
+            if not y.requires_grad:  # order 0: a constant
+                return torch.zeros_like(d), None
+            (gd,) = torch.autograd.grad(y, [d], gout, create_graph=True, allow_unused=True)
+            return (torch.zeros_like(d) if gd is None else gd), None
+        n, dt = d.shape[0], d.dtype
+        dc = d.contiguous()
+        gd = torch.empty_like(dc)
+        g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
+        fn = getattr(_native.library(), "hsh_bwd_" + _suffix(dt))
+        _native.parallel_rows(fn, n, ctx.order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6, _horizon_eps(dt),
+                              *_native_hsh_args(ctx.order, dt), _native.ptr(g), g.stride(0), g.stride(1),
+                              _native.ptr(gd))
+        return gd, None
 
 
 class _PairProducts(torch.autograd.Function):
@@ -1008,12 +1110,14 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
         >>> abs(float(y[0]) - (1 / (2 * math.pi)) ** 0.5) < 1e-6  # H_0^0 = 1/sqrt(2 pi)
         True
     """
-    check_dirs(dirs, "dirs")
+    _check_group([("dirs", dirs)], defer_values=True)
     order = check_order(order)
     lead = dirs.shape[:-1]
     K = (order + 1) ** 2
     flat = dirs.reshape(-1, 3)
-    if _hsh_fast_ok(flat):
+    if _native_ok(flat):
+        out = _HshNative.apply(flat, order)  # checks the values that the kernel flags
+    elif _hsh_fast_ok(flat):
         out = _hsh_sphericart(flat, order)
     else:
         out = _run_rows(lambda d: _hsh_flat_t(d, order), K, flat)
@@ -1047,7 +1151,7 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
         >>> torch_hsh.helmholtz_isotropic(wi, wo, 3).shape
         torch.Size([10, 20])
     """
-    _check_group([("wi", wi), ("wo", wo)])
+    _check_group([("wi", wi), ("wo", wo)], defer_values=True)
     order = check_order(order)
     K = (order + 1) * (order + 2) * (order + 3) // 6
     # fused C kernels (geometry, then the basis), else the torch kernel in row chunks

@@ -1,12 +1,13 @@
 """Fused CPU kernels, compiled from plain C at first use and called through ctypes.
 
-The kernels in ``kernels.c`` (bodies in ``kernels_impl.h``) evaluate the isotropic Helmholtz basis (forward and backward)
-row by row, in blocks of 64 rows that stay in the L1 cache, and the direction maps that
-feed it and the sphericart HSH path. They need no Python or torch headers: the first call
-compiles them with the system C compiler (``$CC``, else ``cc``; about one second) into
-``$TORCH_HSH_CACHE`` (default ``~/.cache/torch_hsh``), keyed by a hash of the source, the
-compiler and the machine, and later calls load the cached library. The rows are split
-over ``torch.get_num_threads()`` threads (ctypes releases the GIL).
+The kernels in ``kernels.c`` (bodies in ``kernels_impl.h``) evaluate the HSH and the isotropic
+Helmholtz basis (forward and backward) row by row, in blocks of 64 rows that stay in the L1 cache,
+the pair products of the anisotropic basis, and the direction map of the sphericart HSH path. They
+need no Python or torch headers: the first call compiles them with the system C compiler (``$CC``,
+else ``cc``; a few seconds) into ``$TORCH_HSH_CACHE`` (default ``~/.cache/torch_hsh``), keyed by a
+hash of the source, the compiler and the machine, and later calls load the cached library. The rows
+are split into block-aligned ranges that ``torch.get_num_threads()`` threads take in turn (ctypes
+releases the GIL); calls of fewer than 4,096 rows run on the caller's thread.
 
 Where no compiler is found, the compilation fails, or ``TORCH_HSH_NATIVE=0`` is set, the
 pure-torch kernels of :mod:`torch_hsh.kernel` run instead (same values to rounding).
@@ -33,6 +34,7 @@ _SRC = Path(__file__).with_name("kernels.c")
 _SOURCES = (_SRC, Path(__file__).with_name("kernels_impl.h"))
 _BLOCK = 64  # rows per block in kernels.c (BS)
 _MIN_ROWS_PER_THREAD = 2048
+_CHUNKS_PER_THREAD = 4  # row ranges per thread (taken dynamically, see _run_chunks)
 
 _state: Dict[str, object] = {"lib": None, "tried": False, "error": None, "path": None}
 _lock = threading.Lock()
@@ -93,12 +95,15 @@ _INT = ctypes.c_int
 
 def _declare(lib: ctypes.CDLL) -> None:
     core = [_INT, _P, _P, _P, _P, _INT, _INT, _P, _P, _P, _P]  # CORE_ARGS of kernels_impl.h
+    hsh = [_INT, _P, _P, _P, _P, _INT, _P, _P, _P]  # HSH_ARGS
     for suf, real in (("f32", ctypes.c_float), ("f64", ctypes.c_double)):
         sigs = {
             "iso_core_fwd": [_I64, _I64] + [_P] * 6 + core + [_P],
             "iso_core_bwd": [_I64, _I64] + [_P] * 6 + core + [_P, _I64, _I64] + [_P] * 5,
             "iso_dirs_fwd": [_I64, _I64, _P, _P, real, real] + core + [_P],
             "iso_dirs_bwd": [_I64, _I64, _P, _P, real, real] + core + [_P, _I64, _I64, _P, _P],
+            "hsh_fwd": [_I64, _I64, _INT, _P, real] + hsh + [_P],
+            "hsh_bwd": [_I64, _I64, _INT, _P, real, real] + hsh + [_P, _I64, _I64, _P],
             "hsh_remap_fwd": [_I64, _I64, _P, real, real, _P, _P],
             "hsh_remap_bwd": [_I64, _I64, _P, real, real, _P, _P],
             "pair_fwd": [_I64, _I64, _P, _P, _INT, _INT, _P, _P, _P, _P],
@@ -142,25 +147,45 @@ def ptr(t: torch.Tensor) -> int:
     return t.data_ptr()
 
 
-def parallel_rows(fn: Callable[..., int], n: int, *args) -> None:
+def parallel_rows(fn: Callable[..., int], n: int, *args) -> bool:
     """Call ``fn(r0, r1, *args)`` over row ranges that split ``[0, n)`` across torch's threads.
 
+    Returns:
+        True where a kernel saw a non-finite input (return code 2 of the forward kernels that
+        normalise directions: the caller then runs the full input check, which names the argument).
+
     Raises:
-        MemoryError: where a kernel could not allocate its scratch tables.
+        MemoryError: where a kernel could not allocate its scratch tables (return code 1).
     """
-    global _pool
     nt = min(torch.get_num_threads(), max(1, n // _MIN_ROWS_PER_THREAD))
     if nt <= 1:
         codes = [fn(0, n, *args)]
     else:
-        # a pool inherited through fork() has no threads in the child: make a new one there
-        if _pool is None or _pool._max_workers < nt or _state.get("pool_pid") != os.getpid():
-            _pool = ThreadPoolExecutor(max_workers=max(nt, os.cpu_count() or 1), thread_name_prefix="torch_hsh")
-            _state["pool_pid"] = os.getpid()
-        step = -(-n // nt)
-        step = -(-step // _BLOCK) * _BLOCK
-        starts = list(range(0, n, step))
-        futs = [_pool.submit(fn, r0, min(n, r0 + step), *args) for r0 in starts[1:]]
-        codes = [fn(0, min(n, step), *args)] + [f.result() for f in futs]  # the caller takes the first range
-    if any(codes):
+        codes = _run_chunks(fn, n, nt, args)
+    if 1 in codes:
         raise MemoryError(f"{fn.__name__}: could not allocate the kernel's scratch tables")
+    return 2 in codes
+
+
+def _run_chunks(fn: Callable[..., int], n: int, nt: int, args: tuple) -> List[int]:
+    """``fn`` over about ``_CHUNKS_PER_THREAD * nt`` row ranges (multiples of the block size, so that
+    the blocks, and the values, do not depend on the split), taken in turn by the caller and ``nt - 1``
+    pool threads: a thread slowed down by another process (or by torch's OpenMP workers, which spin for
+    a while after a torch operation) takes fewer ranges instead of holding the others up."""
+    global _pool
+    # a pool inherited through fork() has no threads in the child: make a new one there
+    if _pool is None or _pool._max_workers < nt or _state.get("pool_pid") != os.getpid():
+        _pool = ThreadPoolExecutor(max_workers=max(nt, os.cpu_count() or 1), thread_name_prefix="torch_hsh")
+        _state["pool_pid"] = os.getpid()
+    step = max(_MIN_ROWS_PER_THREAD, -(-n // (nt * _CHUNKS_PER_THREAD)))
+    step = -(-step // _BLOCK) * _BLOCK
+    ranges = iter([(r0, min(n, r0 + step)) for r0 in range(0, n, step)])
+
+    def take() -> List[int]:  # next() of a list iterator is atomic under the GIL
+        return [fn(r0, r1, *args) for r0, r1 in ranges]
+
+    futs = [_pool.submit(take) for _ in range(nt - 1)]
+    codes = take()
+    for f in futs:
+        codes += f.result()
+    return codes

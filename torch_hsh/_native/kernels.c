@@ -24,6 +24,7 @@
  *   hsh_remap_{fwd,bwd}: d -> d' = (s x, s y, 2 z - 1), s = 2 sqrt(z / (1 + z)) of the
  *     unit direction (the map that turns real spherical harmonics into HSH), and the flag.
  */
+#include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -31,18 +32,126 @@
 
 #define BS 64
 
+#if defined(__AVX512F__)
+#include <immintrin.h>
+/* In-register transpose of 16 rows of 16 floats. */
+static inline void tr16x16(__m512 r[16])
+{
+    __m512 t[16];
+    for (int i = 0; i < 16; i += 2) { t[i] = _mm512_unpacklo_ps(r[i], r[i + 1]); t[i + 1] = _mm512_unpackhi_ps(r[i], r[i + 1]); }
+    for (int i = 0; i < 16; i += 4) {
+        r[i] = _mm512_shuffle_ps(t[i], t[i + 2], 0x44);
+        r[i + 1] = _mm512_shuffle_ps(t[i], t[i + 2], 0xEE);
+        r[i + 2] = _mm512_shuffle_ps(t[i + 1], t[i + 3], 0x44);
+        r[i + 3] = _mm512_shuffle_ps(t[i + 1], t[i + 3], 0xEE);
+    }
+    for (int h = 0; h < 16; h += 8)
+        for (int i = 0; i < 4; ++i) {
+            t[h + i] = _mm512_shuffle_f32x4(r[h + i], r[h + i + 4], 0x88);
+            t[h + i + 4] = _mm512_shuffle_f32x4(r[h + i], r[h + i + 4], 0xDD);
+        }
+    for (int i = 0; i < 8; ++i) {
+        r[i] = _mm512_shuffle_f32x4(t[i], t[i + 8], 0x88);
+        r[i + 8] = _mm512_shuffle_f32x4(t[i], t[i + 8], 0xDD);
+    }
+}
+
+/* out[j * K + k] = tmp[k][j] for j < m, k < K (feature-major block -> row-major rows), 16 x 16 tiles. */
+static void store_rows_f32(int m, int K, float (*tmp)[BS], float *out)
+{
+    int j0 = 0;
+    for (; j0 + 16 <= m; j0 += 16)
+        for (int k0 = 0; k0 < K; k0 += 16) {
+            int kk = K - k0 < 16 ? K - k0 : 16;
+            __m512 r[16];
+            for (int i = 0; i < 16; ++i) r[i] = i < kk ? _mm512_loadu_ps(&tmp[k0 + i][j0]) : _mm512_setzero_ps();
+            tr16x16(r);
+            __mmask16 mk = (__mmask16)((1u << kk) - 1u);
+            for (int i = 0; i < 16; ++i) _mm512_mask_storeu_ps(out + (int64_t)(j0 + i) * K + k0, mk, r[i]);
+        }
+    for (int j = j0; j < m; ++j)
+        for (int k = 0; k < K; ++k) out[(int64_t)j * K + k] = tmp[k][j];
+}
+
+/* g[k][j] = rows[j * K + k] (contiguous row-major rows -> feature-major block), 16 x 16 tiles. */
+static void load_rows_contig_f32(int m, int K, const float *rows, float (*g)[BS])
+{
+    int j0 = 0;
+    for (; j0 + 16 <= m; j0 += 16)
+        for (int k0 = 0; k0 < K; k0 += 16) {
+            int kk = K - k0 < 16 ? K - k0 : 16;
+            __mmask16 mk = (__mmask16)((1u << kk) - 1u);
+            __m512 r[16];
+            for (int i = 0; i < 16; ++i) r[i] = _mm512_maskz_loadu_ps(mk, rows + (int64_t)(j0 + i) * K + k0);
+            tr16x16(r);
+            for (int i = 0; i < kk; ++i) _mm512_storeu_ps(&g[k0 + i][j0], r[i]);
+        }
+    for (int j = j0; j < m; ++j)
+        for (int k = 0; k < K; ++k) g[k][j] = rows[(int64_t)j * K + k];
+}
+#else
+static void load_rows_contig_f32(int m, int K, const float *rows, float (*g)[BS])
+{
+    for (int k = 0; k < K; ++k)
+        for (int j = 0; j < m; ++j) g[k][j] = rows[(int64_t)j * K + k];
+}
+
+static void store_rows_f32(int m, int K, float (*tmp)[BS], float *out)
+{
+    for (int j = 0; j < m; ++j)
+        for (int k = 0; k < K; ++k) out[(int64_t)j * K + k] = tmp[k][j];
+}
+#endif
+
+static void store_rows_f64(int m, int K, double (*tmp)[BS], double *out)
+{
+    for (int j = 0; j < m; ++j)
+        for (int k = 0; k < K; ++k) out[(int64_t)j * K + k] = tmp[k][j];
+}
+
+static void load_rows_contig_f64(int m, int K, const double *rows, double (*g)[BS])
+{
+    for (int k = 0; k < K; ++k)
+        for (int j = 0; j < m; ++j) g[k][j] = rows[(int64_t)j * K + k];
+}
+
+/* g[k][j] = gout[j * gs0 + k * gs1] for a block of m rows (gout may be strided: an expanded gradient has
+ * stride 0, the gradient of a sum is one value everywhere). */
+#define LOAD_ROWS(T, SUFX)                                                                                          \
+    static void load_rows_##SUFX(int m, int K, const T *gout, int64_t gs0, int64_t gs1, T (*g)[BS])                   \
+    {                                                                                                               \
+        if (gs1 == 1 && gs0 == K) {                                                                                 \
+            load_rows_contig_##SUFX(m, K, gout, g);                                                                 \
+        } else if (gs0 == 0) {                                                                                      \
+            for (int k = 0; k < K; ++k) {                                                                           \
+                const T c = gout[k * gs1];                                                                          \
+                for (int j = 0; j < m; ++j) g[k][j] = c;                                                            \
+            }                                                                                                       \
+        } else {                                                                                                    \
+            for (int k = 0; k < K; ++k)                                                                             \
+                for (int j = 0; j < m; ++j) g[k][j] = gout[(int64_t)j * gs0 + k * gs1];                             \
+        }                                                                                                           \
+    }
+LOAD_ROWS(float, f32)
+LOAD_ROWS(double, f64)
+#undef LOAD_ROWS
+
 #define T float
 #define SUF(name) name##_f32
 #define SQRT sqrtf
+#define TMAX FLT_MAX
 #include "kernels_impl.h"
 #undef T
 #undef SUF
 #undef SQRT
+#undef TMAX
 
 #define T double
 #define SUF(name) name##_f64
 #define SQRT sqrt
+#define TMAX DBL_MAX
 #include "kernels_impl.h"
 #undef T
 #undef SUF
 #undef SQRT
+#undef TMAX

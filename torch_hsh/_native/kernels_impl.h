@@ -1,15 +1,29 @@
 /* Kernel bodies, included twice by kernels.c (T = float / double). */
 
+/* Every loop over the rows j of a block touches element j of its arrays only: no loop-carried
+ * dependence, whatever rows of the scratch tables alias; this spares GCC its runtime alias checks
+ * (past ten of them it gave up and ran the scalar loop). */
+#ifndef IVDEP
+#if defined(__GNUC__) && !defined(__clang__)
+#define IVDEP _Pragma("GCC ivdep")
+#else
+#define IVDEP
+#endif
+#endif
+
 /* Geometry of one block of direction pairs (AoS input), branch-free so that it vectorises.
  * Outputs: t = 2z - 1 of both directions, a, rho, sio, the flag, and for the backward pass
  * the unit vectors, 1/|d| and ds/dz (the horizon-safe derivative). */
-static void SUF(geom_block)(int m, const T *wi, const T *wo, T tiny, T eps, T *ti, T *to, T *a, T *rho, T *sio,
-                            T *v, T *u /* 6*BS or NULL */, T *inv /* 2*BS */, T *ds /* 2*BS */)
+static int SUF(geom_block)(int m, const T *wi, const T *wo, T tiny, T eps, T *ti, T *to, T *a, T *rho, T *sio,
+                           T *v, T *u /* 6*BS or NULL */, T *inv /* 2*BS */, T *ds /* 2*BS */)
 {
+    int bad = 0;  /* a non-finite input (or an overflowing |d|^2): the caller runs the full check */
+    IVDEP
     for (int j = 0; j < m; ++j) {
         T xi = wi[3 * j], yi = wi[3 * j + 1], zi = wi[3 * j + 2];
         T xo = wo[3 * j], yo = wo[3 * j + 1], zo = wo[3 * j + 2];
         T ni = xi * xi + yi * yi + zi * zi, no = xo * xo + yo * yo + zo * zo;
+        bad |= !(ni <= TMAX) | !(no <= TMAX);
         int oki = ni > tiny, oko = no > tiny;
         T ii = oki ? (T)1 / SQRT(ni) : (T)1, io = oko ? (T)1 / SQRT(no) : (T)1;
         xi *= ii; yi *= ii; zi *= ii;
@@ -30,6 +44,7 @@ static void SUF(geom_block)(int m, const T *wi, const T *wo, T tiny, T eps, T *t
             ds[BS + j] = zpo > eps ? (T)0.5 / (so * (1 + zpo) * (1 + zpo)) : (T)0;
         }
     }
+    return bad;
 }
 
 /* Polar tables (and optionally their z-derivatives) of one block. */
@@ -39,17 +54,21 @@ static void SUF(polar_block)(int m, int L, const T *A, const T *B, const int32_t
     for (int c = 0; c < L; ++c) {
         const T Ac = A[c], Bc = B[c];
         if (c1[c] < 0) {
+            IVDEP
             for (int j = 0; j < m; ++j) { Ri[c][j] = Ac; Ro[c][j] = Ac; }
             if (dRi)
+                IVDEP
                 for (int j = 0; j < m; ++j) { dRi[c][j] = 0; dRo[c][j] = 0; }
             continue;
         }
         const T *restrict ri1 = Ri[c1[c]], *restrict ro1 = Ro[c1[c]];
         T *restrict ric = Ri[c], *restrict roc = Ro[c];
         if (c2[c] < 0) {
+            IVDEP
             for (int j = 0; j < m; ++j) { ric[j] = Ac * ti[j] * ri1[j]; roc[j] = Ac * to[j] * ro1[j]; }
         } else {
             const T *restrict ri2 = Ri[c2[c]], *restrict ro2 = Ro[c2[c]];
+            IVDEP
             for (int j = 0; j < m; ++j) {
                 ric[j] = Ac * ti[j] * ri1[j] - Bc * ri2[j];
                 roc[j] = Ac * to[j] * ro1[j] - Bc * ro2[j];
@@ -58,12 +77,14 @@ static void SUF(polar_block)(int m, int L, const T *A, const T *B, const int32_t
         if (dRi) {  /* d/dz of A t R1 - B R2 with t = 2z - 1 */
             const T *restrict di1 = dRi[c1[c]], *restrict do1 = dRo[c1[c]];
             T *restrict dic = dRi[c], *restrict doc = dRo[c];
+            IVDEP
             for (int j = 0; j < m; ++j) {
                 dic[j] = Ac * (2 * ri1[j] + ti[j] * di1[j]);
                 doc[j] = Ac * (2 * ro1[j] + to[j] * do1[j]);
             }
             if (c2[c] >= 0) {
                 const T *restrict di2 = dRi[c2[c]], *restrict do2 = dRo[c2[c]];
+                IVDEP
                 for (int j = 0; j < m; ++j) { dic[j] -= Bc * di2[j]; doc[j] -= Bc * do2[j]; }
             }
         }
@@ -78,22 +99,23 @@ static void SUF(core_fwd_block)(int m, const T *ti, const T *to, const T *a1, co
 {
     T (*Ri)[BS] = (T(*)[BS])scratch, (*Ro)[BS] = Ri + L, (*G)[BS] = Ro + L, (*tmp)[BS] = G + P + 1;
     SUF(polar_block)(m, L, A, B, c1, c2, ti, to, Ri, Ro, 0, 0);
+    IVDEP
     for (int j = 0; j < m; ++j) G[0][j] = v[j];
     if (P >= 1)
+        IVDEP
         for (int j = 0; j < m; ++j) G[1][j] = a1[j] * v[j];
     for (int q = 2; q <= P; ++q)
+        IVDEP
         for (int j = 0; j < m; ++j) G[q][j] = 2 * a1[j] * G[q - 1][j] - q1[j] * G[q - 2][j];
     for (int k = 0; k < K; ++k) {
         const T *restrict ra = Ri[ka[k]], *restrict rb = Ri[kb[k]], *restrict oa = Ro[ka[k]];
         const T *restrict ob = Ro[kb[k]], *restrict g = G[kq[k]];
         const T ck = kc[k];
         T *restrict t = tmp[k];
+        IVDEP
         for (int j = 0; j < m; ++j) t[j] = ck * (ra[j] * ob[j] + rb[j] * oa[j]) * g[j];
     }
-    for (int j = 0; j < m; ++j) {
-        T *o = out + (int64_t)j * K;
-        for (int k = 0; k < K; ++k) o[k] = tmp[k][j];
-    }
+    SUF(store_rows)(m, K, tmp, out);
 }
 
 /* Backward of one block: gradients with respect to zi, zo, a1, r1 (per row) from gout rows. */
@@ -106,16 +128,22 @@ static void SUF(core_bwd_block)(int m, const T *ti, const T *to, const T *a1, co
     T (*Ri)[BS] = (T(*)[BS])scratch, (*Ro)[BS] = Ri + L, (*dRi)[BS] = Ro + L, (*dRo)[BS] = dRi + L;
     T (*G)[BS] = dRo + L, (*Ga)[BS] = G + P + 1, (*Gr)[BS] = Ga + P + 1, (*gG)[BS] = Gr + P + 1, (*g)[BS] = gG + P + 1;
     SUF(polar_block)(m, L, A, B, c1, c2, ti, to, Ri, Ro, dRi, dRo);
-    for (int j = 0; j < m; ++j) {  /* gout may be strided (an expanded gradient has stride 0) */
-        const T *gr = gout + (int64_t)j * gs0;
-        for (int k = 0; k < K; ++k) g[k][j] = gr[k * gs1] * kc[k];
+    SUF(load_rows)(m, K, gout, gs0, gs1, g);
+    for (int k = 0; k < K; ++k) {
+        const T c = kc[k];
+        IVDEP
+        for (int j = 0; j < m; ++j) g[k][j] *= c;
     }
+    IVDEP
     for (int j = 0; j < m; ++j) { G[0][j] = v[j]; Ga[0][j] = 0; Gr[0][j] = 0; gzi[j] = 0; gzo[j] = 0; }
     for (int q = 0; q <= P; ++q)
+        IVDEP
         for (int j = 0; j < m; ++j) gG[q][j] = 0;
     if (P >= 1)
+        IVDEP
         for (int j = 0; j < m; ++j) { G[1][j] = a1[j] * v[j]; Ga[1][j] = v[j]; Gr[1][j] = 0; }
     for (int q = 2; q <= P; ++q)
+        IVDEP
         for (int j = 0; j < m; ++j) {
             G[q][j] = 2 * a1[j] * G[q - 1][j] - q1[j] * G[q - 2][j];
             Ga[q][j] = 2 * G[q - 1][j] + 2 * a1[j] * Ga[q - 1][j] - q1[j] * Ga[q - 2][j];
@@ -127,6 +155,7 @@ static void SUF(core_bwd_block)(int m, const T *ti, const T *to, const T *a1, co
         const T *restrict dra = dRi[ia], *restrict drb = dRi[ib], *restrict doa = dRo[ia], *restrict dob = dRo[ib];
         const T *restrict gq = G[kq[k]], *restrict gk = g[k];
         T *restrict acc = gG[kq[k]];
+        IVDEP
         for (int j = 0; j < m; ++j) {
             const T w = gk[j], wg = gk[j] * gq[j];
             acc[j] += w * (ra[j] * ob[j] + rb[j] * oa[j]);
@@ -134,8 +163,10 @@ static void SUF(core_bwd_block)(int m, const T *ti, const T *to, const T *a1, co
             gzo[j] += wg * (ra[j] * dob[j] + rb[j] * doa[j]);
         }
     }
+    IVDEP
     for (int j = 0; j < m; ++j) { ga1[j] = 0; gr1[j] = 0; }
     for (int q = 1; q <= P; ++q)
+        IVDEP
         for (int j = 0; j < m; ++j) { ga1[j] += gG[q][j] * Ga[q][j]; gr1[j] += gG[q][j] * Gr[q][j]; }
 }
 
@@ -150,6 +181,7 @@ static void SUF(core_bwd_block)(int m, const T *ti, const T *to, const T *a1, co
 static void SUF(load_scalars)(int m, const T *zi, const T *zo, const T *a, const T *rho, const T *sio,
                               const uint8_t *valid, T *ti, T *to, T *a1, T *q1, T *v)
 {
+    IVDEP
     for (int j = 0; j < m; ++j) {
         ti[j] = 2 * zi[j] - 1; to[j] = 2 * zo[j] - 1;
         a1[j] = sio[j] * a[j]; q1[j] = sio[j] * sio[j] * rho[j];
@@ -182,6 +214,7 @@ int SUF(iso_core_bwd)(int64_t r0, int64_t r1, const T *zi, const T *zo, const T 
         int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
         SUF(load_scalars)(m, zi + b0, zo + b0, a + b0, rho + b0, sio + b0, valid + b0, ti, to, a1, q1, v);
         SUF(core_bwd_block)(m, ti, to, a1, q1, v, CORE_PASS, gout + b0 * gs0, gs0, gs1, gzi + b0, gzo + b0, ga1, gr1, scratch);
+        IVDEP
         for (int j = 0; j < m; ++j) {  /* a1 = sio a, r1 = sio^2 rho */
             int64_t r = b0 + j;
             T s = sio[r];
@@ -197,16 +230,18 @@ int SUF(iso_core_bwd)(int64_t r0, int64_t r1, const T *zi, const T *zo, const T 
 int SUF(iso_dirs_fwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T eps, CORE_ARGS, T *out)
 {
     T ti[BS], to[BS], a[BS], rho[BS], sio[BS], v[BS];
+    int bad = 0;
     T *scratch = (T *)malloc(sizeof(T) * FWD_SCRATCH);
     if (!scratch) return 1;  /* out of memory */
     for (int64_t b0 = r0; b0 < r1; b0 += BS) {
         int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        SUF(geom_block)(m, wi + 3 * b0, wo + 3 * b0, tiny, eps, ti, to, a, rho, sio, v, 0, 0, 0);
+        bad |= SUF(geom_block)(m, wi + 3 * b0, wo + 3 * b0, tiny, eps, ti, to, a, rho, sio, v, 0, 0, 0);
+        IVDEP
         for (int j = 0; j < m; ++j) { T s = sio[j]; a[j] *= s; rho[j] *= s * s; }  /* a1, r1 */
         SUF(core_fwd_block)(m, ti, to, a, rho, v, CORE_PASS, out + b0 * K, scratch);
     }
     free(scratch);
-    return 0;
+    return bad ? 2 : 0;  /* 2: a non-finite input was seen */
 }
 
 int SUF(iso_dirs_bwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T eps, CORE_ARGS, const T *gout,
@@ -218,9 +253,11 @@ int SUF(iso_dirs_bwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, 
     if (!scratch) return 1;  /* out of memory */
     for (int64_t b0 = r0; b0 < r1; b0 += BS) {
         int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        SUF(geom_block)(m, wi + 3 * b0, wo + 3 * b0, tiny, eps, ti, to, a, rho, sio, v, u, inv, ds);
+        (void)SUF(geom_block)(m, wi + 3 * b0, wo + 3 * b0, tiny, eps, ti, to, a, rho, sio, v, u, inv, ds);
+        IVDEP
         for (int j = 0; j < m; ++j) { a1[j] = sio[j] * a[j]; q1[j] = sio[j] * sio[j] * rho[j]; }
         SUF(core_bwd_block)(m, ti, to, a1, q1, v, CORE_PASS, gout + b0 * gs0, gs0, gs1, gzi, gzo, ga1, gr1, scratch);
+        IVDEP
         for (int j = 0; j < m; ++j) {
             T s = sio[j];
             T ga = ga1[j] * s, grho = gr1[j] * s * s, gsio = ga1[j] * a[j] + gr1[j] * 2 * s * rho[j];
@@ -253,6 +290,7 @@ int SUF(hsh_remap_fwd)(int64_t r0, int64_t r1, const T *d, T tiny, T eps, T *dp,
         int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
         const T *restrict db = d + 3 * b0;
         T *restrict pb = dp + 3 * b0;
+        IVDEP
         for (int j = 0; j < m; ++j) {
             T x = db[3 * j], y = db[3 * j + 1], z = db[3 * j + 2];
             T n2 = x * x + y * y + z * z;
@@ -265,6 +303,7 @@ int SUF(hsh_remap_fwd)(int64_t r0, int64_t r1, const T *d, T tiny, T eps, T *dp,
             pb[3 * j + 2] = 2 * zp - 1;
             vb[j] = (n2 > tiny && z >= 0) ? (T)1 : (T)0;
         }
+        IVDEP
         for (int j = 0; j < m; ++j) valid[b0 + j] = (uint8_t)(vb[j] != 0);
     }
     return 0;
@@ -302,18 +341,16 @@ int SUF(pair_fwd)(int64_t r0, int64_t r1, const T *Am, const T *Bm, int H, int Q
     T (*a)[BS] = (T(*)[BS])scratch, (*b)[BS] = a + H, (*tmp)[BS] = b + H;
     for (int64_t b0 = r0; b0 < r1; b0 += BS) {
         int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        for (int j = 0; j < m; ++j)
-            for (int h = 0; h < H; ++h) { a[h][j] = Am[(b0 + j) * H + h]; b[h][j] = Bm[(b0 + j) * H + h]; }
+        SUF(load_rows_contig)(m, H, Am + b0 * H, a);
+        SUF(load_rows_contig)(m, H, Bm + b0 * H, b);
         for (int p = 0; p < Q; ++p) {
             const T *restrict aj = a[pj[p]], *restrict ak = a[pk[p]], *restrict bj = b[pj[p]], *restrict bk = b[pk[p]];
             const T c = pc[p];
             T *restrict t = tmp[p];
+            IVDEP
             for (int j = 0; j < m; ++j) t[j] = c * (aj[j] * bk[j] + ak[j] * bj[j]);
         }
-        for (int j = 0; j < m; ++j) {
-            T *o = out + (b0 + j) * (int64_t)Q;
-            for (int p = 0; p < Q; ++p) o[p] = tmp[p][j];
-        }
+        SUF(store_rows)(m, Q, tmp, out + b0 * (int64_t)Q);
     }
     free(scratch);
     return 0;
@@ -327,13 +364,16 @@ int SUF(pair_bwd)(int64_t r0, int64_t r1, const T *Am, const T *Bm, int H, int Q
     T (*a)[BS] = (T(*)[BS])scratch, (*b)[BS] = a + H, (*ga)[BS] = b + H, (*gb)[BS] = ga + H, (*g)[BS] = gb + H;
     for (int64_t b0 = r0; b0 < r1; b0 += BS) {
         int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        for (int j = 0; j < m; ++j) {
-            for (int h = 0; h < H; ++h) {
-                a[h][j] = Am[(b0 + j) * H + h]; b[h][j] = Bm[(b0 + j) * H + h];
-                ga[h][j] = 0; gb[h][j] = 0;
-            }
-            const T *gr = gout + (b0 + j) * gs0;
-            for (int p = 0; p < Q; ++p) g[p][j] = gr[p * gs1] * pc[p];
+        SUF(load_rows_contig)(m, H, Am + b0 * H, a);
+        SUF(load_rows_contig)(m, H, Bm + b0 * H, b);
+        for (int h = 0; h < H; ++h)
+            IVDEP
+            for (int j = 0; j < m; ++j) { ga[h][j] = 0; gb[h][j] = 0; }
+        SUF(load_rows)(m, Q, gout + b0 * gs0, gs0, gs1, g);
+        for (int p = 0; p < Q; ++p) {
+            const T c = pc[p];
+            IVDEP
+            for (int j = 0; j < m; ++j) g[p][j] *= c;
         }
         for (int p = 0; p < Q; ++p) {
             const int J = pj[p], K = pk[p];
@@ -341,21 +381,223 @@ int SUF(pair_bwd)(int64_t r0, int64_t r1, const T *Am, const T *Bm, int H, int Q
             const T *restrict gp = g[p];
             if (J == K) {
                 T *restrict gaj = ga[J], *restrict gbj = gb[J];
+                IVDEP
                 for (int j = 0; j < m; ++j) { gaj[j] += 2 * gp[j] * bj[j]; gbj[j] += 2 * gp[j] * aj[j]; }
             } else {
                 T *restrict gaj = ga[J], *restrict gak = ga[K], *restrict gbj = gb[J], *restrict gbk = gb[K];
+                IVDEP
                 for (int j = 0; j < m; ++j) {
                     gaj[j] += gp[j] * bk[j]; gak[j] += gp[j] * bj[j];
                     gbk[j] += gp[j] * aj[j]; gbj[j] += gp[j] * ak[j];
                 }
             }
         }
-        for (int j = 0; j < m; ++j)
-            for (int h = 0; h < H; ++h) { gA[(b0 + j) * H + h] = ga[h][j]; gB[(b0 + j) * H + h] = gb[h][j]; }
+        SUF(store_rows)(m, H, ga, gA + b0 * H);
+        SUF(store_rows)(m, H, gb, gB + b0 * H);
     }
     free(scratch);
     return 0;
 }
+
+
+/* ---- HSH of one direction set: H_k = ks_k R_{kr_k}(2z - 1) Az_{ka_k}, written straight into (N, K) rows ----
+ * R: the polar table (recurrence A, B, c1, c2 as for the isotropic basis, one set), with dR/dz for the backward;
+ * Az_m = Re w^m (m = 0..P), Az_{P+m} = Im w^m (m = 1..P), w = s (x + i y), s = sqrt(z / (1 + z)), times the flag;
+ * ks_k the azimuthal scale (1, sqrt 2 or (-1)^m sqrt 2). Rows are processed in blocks of BS, feature-major inside
+ * a block (every loop runs over the rows and vectorises), then transposed into the output rows (store_rows). */
+#define HSH_ARGS int L, const T *A, const T *B, const int32_t *c1, const int32_t *c2, int K, \
+                 const int32_t *kr, const int32_t *ka, const T *ks
+#define HSH_PASS L, A, B, c1, c2, K, kr, ka, ks
+#define HSH_SCRATCH ((size_t)BS * (2 * L + 2 * P + 1 + 2 * K + 8))
+
+/* Unit vectors, flag, t = 2z - 1, s and (bwd) ds/dz (horizon-safe) and 1/|d| of one block of (m, 3) rows. */
+static int SUF(hsh_geom)(int m, const T *restrict d, T tiny, T eps, T *restrict x,
+        T *restrict y, T *restrict z, T *restrict t, T *restrict s, T *restrict v, T *restrict inv, T *restrict ds)
+{
+    int bad = 0;  /* a non-finite input (or an overflowing |d|^2): the caller runs the full check */
+    IVDEP
+    for (int j = 0; j < m; ++j) {
+        T xj = d[3 * j], yj = d[3 * j + 1], zj = d[3 * j + 2];
+        T n2 = xj * xj + yj * yj + zj * zj;
+        bad |= !(n2 <= TMAX);
+        int ok = n2 > tiny;
+        T ii = ok ? (T)1 / SQRT(n2) : (T)1;
+        xj *= ii; yj *= ii; zj *= ii;
+        T zp = zj > 0 ? zj : (T)0;
+        T sj = SQRT(zp / (1 + zp));
+        x[j] = xj; y[j] = yj; z[j] = zj; t[j] = 2 * zj - 1; s[j] = sj;
+        v[j] = (ok && zj >= 0) ? (T)1 : (T)0;
+        if (inv) {
+            inv[j] = ii;
+            ds[j] = zp > eps ? (T)0.5 / (sj * (1 + zp) * (1 + zp)) : (T)0;
+        }
+    }
+    return bad;
+}
+
+/* Polar table of one set (and its z-derivative where dR is not NULL). */
+static void SUF(polar1)(int m, int L, const T *A, const T *B,
+        const int32_t *c1, const int32_t *c2, const T *restrict t, T (*R)[BS], T (*dR)[BS])
+{
+    for (int c = 0; c < L; ++c) {
+        const T Ac = A[c], Bc = B[c];
+        T *restrict rc = R[c];
+        if (c1[c] < 0) {
+            IVDEP
+            for (int j = 0; j < m; ++j) rc[j] = Ac;
+            if (dR)
+                IVDEP
+                for (int j = 0; j < m; ++j) dR[c][j] = 0;
+            continue;
+        }
+        const T *restrict r1 = R[c1[c]];
+        if (c2[c] < 0) {
+            IVDEP
+            for (int j = 0; j < m; ++j) rc[j] = Ac * t[j] * r1[j];
+        } else {
+            const T *restrict r2 = R[c2[c]];
+            IVDEP
+            for (int j = 0; j < m; ++j) rc[j] = Ac * t[j] * r1[j] - Bc * r2[j];
+        }
+        if (dR) {  /* d/dz of A t R1 - B R2 with t = 2z - 1 */
+            const T *restrict d1 = dR[c1[c]];
+            T *restrict dc = dR[c];
+            IVDEP
+            for (int j = 0; j < m; ++j) dc[j] = Ac * (2 * r1[j] + t[j] * d1[j]);
+            if (c2[c] >= 0) {
+                const T *restrict d2 = dR[c2[c]];
+                IVDEP
+                for (int j = 0; j < m; ++j) dc[j] -= Bc * d2[j];
+            }
+        }
+    }
+}
+
+/* Az rows (see above): Re w^m at 0..P, Im w^m at P+1..2P, with the flag. */
+static void SUF(hsh_az)(int m, int P, const T *restrict x, const T *restrict y,
+        const T *restrict s, const T *restrict v, T (*Az)[BS])
+{
+    IVDEP
+    for (int j = 0; j < m; ++j) Az[0][j] = v[j];
+    if (P < 1) return;
+    IVDEP
+    for (int j = 0; j < m; ++j) { Az[1][j] = s[j] * x[j] * v[j]; Az[P + 1][j] = s[j] * y[j] * v[j]; }
+    for (int q = 2; q <= P; ++q) {
+        T *restrict re = Az[q], *restrict im = Az[P + q];
+        const T *restrict re1 = Az[q - 1], *restrict im1 = Az[P + q - 1];
+        IVDEP
+        for (int j = 0; j < m; ++j) {
+            T u = s[j] * x[j], w = s[j] * y[j];
+            re[j] = re1[j] * u - im1[j] * w;
+            im[j] = re1[j] * w + im1[j] * u;
+        }
+    }
+}
+
+static int SUF(hsh_fwd_impl)(int64_t r0, int64_t r1, int P, const T *d, T tiny,
+        HSH_ARGS, T *out, T *scratch)
+{
+    T x[BS], y[BS], z[BS], t[BS], s[BS], v[BS];
+    int bad = 0;
+    T (*R)[BS] = (T(*)[BS])scratch, (*Az)[BS] = R + L, (*tmp)[BS] = Az + 2 * P + 1;
+    for (int64_t b0 = r0; b0 < r1; b0 += BS) {
+        int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
+        bad |= SUF(hsh_geom)(m, d + 3 * b0, tiny, 0, x, y, z, t, s, v, 0, 0);
+        SUF(polar1)(m, L, A, B, c1, c2, t, R, 0);
+        SUF(hsh_az)(m, P, x, y, s, v, Az);
+        for (int k = 0; k < K; ++k) {
+            const T *restrict rk = R[kr[k]], *restrict ak = Az[ka[k]];
+            const T c = ks[k];
+            T *restrict o = tmp[k];
+            IVDEP
+            for (int j = 0; j < m; ++j) o[j] = c * rk[j] * ak[j];
+        }
+        SUF(store_rows)(m, K, tmp, out + b0 * K);
+    }
+    return bad ? 2 : 0;  /* 2: a non-finite input was seen */
+}
+
+/* Backward of one block: gd from the gout rows (strided), see the header comment of hsh_fwd. */
+static void SUF(hsh_bwd_block)(int m, int P, const T *d, T tiny, T eps,
+        HSH_ARGS, const T *gout, int64_t gs0, int64_t gs1, T *gd, T *scratch)
+{
+    T x[BS], y[BS], z[BS], t[BS], s[BS], v[BS], inv[BS], ds[BS], gx[BS], gy[BS], gz[BS];
+    T (*R)[BS] = (T(*)[BS])scratch, (*dR)[BS] = R + L, (*Az)[BS] = dR + L, (*gA)[BS] = Az + 2 * P + 1;
+    T (*g)[BS] = gA + 2 * P + 1;
+    (void)SUF(hsh_geom)(m, d, tiny, eps, x, y, z, t, s, v, inv, ds);
+    SUF(polar1)(m, L, A, B, c1, c2, t, R, dR);
+    SUF(hsh_az)(m, P, x, y, s, v, Az);
+    SUF(load_rows)(m, K, gout, gs0, gs1, g);
+    for (int a = 0; a <= 2 * P; ++a)
+        IVDEP
+        for (int j = 0; j < m; ++j) gA[a][j] = 0;
+    IVDEP
+    for (int j = 0; j < m; ++j) gz[j] = 0;
+    for (int k = 0; k < K; ++k) {
+        const T *restrict rk = R[kr[k]], *restrict dk = dR[kr[k]], *restrict ak = Az[ka[k]], *restrict gk = g[k];
+        T *restrict acc = gA[ka[k]];
+        const T c = ks[k];
+        IVDEP
+        for (int j = 0; j < m; ++j) {
+            T w = c * gk[j];
+            acc[j] += w * rk[j];
+            gz[j] += w * dk[j] * ak[j];
+        }
+    }
+    IVDEP
+    for (int j = 0; j < m; ++j) { gx[j] = 0; gy[j] = 0; }
+    for (int q = 1; q <= P; ++q) {  /* d w^q = q w^(q-1) (s dx + i s dy + ds (x + i y) dz) */
+        const T *restrict re1 = Az[q - 1], *restrict gre = gA[q], *restrict gim = gA[P + q];
+        const T *restrict im1 = q > 1 ? Az[P + q - 1] : 0;
+        IVDEP
+        for (int j = 0; j < m; ++j) {
+            T i1 = im1 ? im1[j] : (T)0;
+            T a = gre[j] * re1[j] + gim[j] * i1, b = gim[j] * re1[j] - gre[j] * i1;
+            gx[j] += q * s[j] * a;
+            gy[j] += q * s[j] * b;
+            gz[j] += q * ds[j] * (a * x[j] + b * y[j]);
+        }
+    }
+    IVDEP
+    for (int j = 0; j < m; ++j) {  /* through u = d / |d| */
+        T pd = x[j] * gx[j] + y[j] * gy[j] + z[j] * gz[j];
+        gd[3 * j] = inv[j] * (gx[j] - x[j] * pd);
+        gd[3 * j + 1] = inv[j] * (gy[j] - y[j] * pd);
+        gd[3 * j + 2] = inv[j] * (gz[j] - z[j] * pd);
+    }
+}
+
+static int SUF(hsh_bwd_impl)(int64_t r0, int64_t r1, int P, const T *d, T tiny,
+        T eps, HSH_ARGS, const T *gout, int64_t gs0, int64_t gs1, T *gd, T *scratch)
+{
+    for (int64_t b0 = r0; b0 < r1; b0 += BS) {
+        int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
+        SUF(hsh_bwd_block)(m, P, d + 3 * b0, tiny, eps, HSH_PASS, gout + b0 * gs0, gs0, gs1, gd + 3 * b0, scratch);
+    }
+    return 0;
+}
+
+int SUF(hsh_fwd)(int64_t r0, int64_t r1, int P, const T *d, T tiny, HSH_ARGS, T *out)
+{
+    T *scratch = (T *)malloc(sizeof(T) * HSH_SCRATCH);
+    if (!scratch) return 1;
+    int code = SUF(hsh_fwd_impl)(r0, r1, P, d, tiny, HSH_PASS, out, scratch);
+    free(scratch);
+    return code;
+}
+
+int SUF(hsh_bwd)(int64_t r0, int64_t r1, int P, const T *d, T tiny, T eps, HSH_ARGS, const T *gout, int64_t gs0,
+                 int64_t gs1, T *gd)
+{
+    T *scratch = (T *)malloc(sizeof(T) * HSH_SCRATCH);
+    if (!scratch) return 1;
+    SUF(hsh_bwd_impl)(r0, r1, P, d, tiny, eps, HSH_PASS, gout, gs0, gs1, gd, scratch);
+    free(scratch);
+    return 0;
+}
+#undef HSH_ARGS
+#undef HSH_PASS
+#undef HSH_SCRATCH
 
 #undef CORE_ARGS
 #undef CORE_PASS
