@@ -59,3 +59,22 @@ def test_bench_suite_quick(tmp_path, monkeypatch):
         assert scenes["dome_plastic"]["stages"]["per-pixel"]["mean"] < 10  # matte dome: a small error
     # printed as it goes: the first solve's line came well before the last scene was done
     assert r.last - r.first(r" per-pixel seed 0: mean") > 1.0, r.lines
+
+
+def test_surface_floor_quick(tmp_path, monkeypatch):
+    # the floor of a depth-map model: true normals -> depth -> normals; small on a smooth field, 0 on a plane
+    monkeypatch.setenv("TORCH_HSH_CACHE", str(tmp_path / "cache"))
+    r = run_script("benchmarks/surface_floor.py", "--quick", "--only", "bumpy_shadows", "--threads", "1")
+    m = re.search(rf"^\| bumpy_shadows \| {NUM} \| {NUM} \|$", r.stdout, re.M)
+    assert m, r.stdout
+    assert 0 < float(m.group(1)) < 3 and 0 < float(m.group(2)) < 3
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import torch
+    from surface_floor import floor_row
+
+    n = torch.nn.functional.normalize(torch.tensor([0.3, -0.2, 1.0], dtype=torch.float64), dim=0).expand(12, 12, 3)
+    row = floor_row(n, torch.ones(12, 12, dtype=torch.bool), ("poisson",))
+    assert row["poisson central"] < 1e-5 and row["poisson one-sided mix"] < 1e-5

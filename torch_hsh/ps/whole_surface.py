@@ -68,7 +68,7 @@ __all__ = ["refine_surface", "depth_normals", "discontinuity_weights", "SURFACE_
 _K = 2.0
 #: IRLS passes of the mixing weights per round.
 _IRLS = 2
-START_METHOD = "poisson"
+_START_METHOD = "poisson"
 #: Pixels (a strided subset) of the held-out-light comparison.
 _HOLDOUT_PIXELS = 8192
 #: Pixels per chunk of the loss evaluation.
@@ -354,7 +354,7 @@ def refine_surface(
     data = _Data(y=d.y.to(wdt).transpose(1, 2).contiguous(), w0=obs.weights.to(wdt),
                  design=MixedDesign(basis.to(wdt), d.lights.to(wdt), result.order),
                  scale=scale_u, c=cfg.cauchy_c, train=train, basis=basis)
-    dep = _Depth.start(result.normals.to(dt), result.mask, dt, START_METHOD)
+    dep = _Depth.start(result.normals.to(dt), result.mask, dt, _START_METHOD)
     n_start = result.normals.to(dt)[result.mask]
     log = _run_rounds(data, dep, n_start, d.lights, rounds, cfg)
     info = dict(result.info)
