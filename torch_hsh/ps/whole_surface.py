@@ -345,6 +345,7 @@ def refine_surface(
     obs = observe(images, lights, intensities, result.mask, cfg)
     d = obs.data
     dt = d.dtype
+    assert result.basis_brdfs is not None  # _check_result
     basis = result.basis_brdfs.to(dt)
     scale_u = float(result.info.get("robust_scale", 0.0)) / obs.scale
     if not scale_u > 0:
