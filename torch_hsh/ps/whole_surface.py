@@ -147,7 +147,18 @@ def _one_sided(z: torch.Tensor, m: torch.Tensor, dim: int):
 
 
 def discontinuity_weights(z: torch.Tensor, m: torch.Tensor, k: float = _K) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Weights of the forward difference per axis (rows, cols), ``sigmoid(k (d_-^2 - d_+^2))``, from a depth."""
+    """Weights of the forward difference per axis, ``sigmoid(k (d_-^2 - d_+^2))``, from a depth.
+
+    ``z (h, w)`` depth (pixel units), ``m (h, w)`` bool mask; returns two ``(h, w)`` maps (rows, cols)
+    in ``[0, 1]``: near 1 where the backward difference is the larger (a jump behind the pixel), 0.5
+    on a smooth surface. Not differentiated (computed from ``z.detach()``).
+
+    Example:
+        >>> z = torch.tensor([[0.0, 1.0, 2.0, 12.0, 13.0]])  # a jump between columns 2 and 3
+        >>> wr, wc = discontinuity_weights(z, torch.ones(1, 5, dtype=torch.bool))
+        >>> [round(float(v), 2) for v in wc[0, 1:4]]  # col 2 looks back, col 3 looks forward
+        [0.5, 0.0, 1.0]
+    """
     out = []
     for dim in (0, 1):
         fwd, bwd, _, _ = _one_sided(z.detach(), m, dim)
@@ -161,6 +172,21 @@ def depth_normals(z: torch.Tensor, m: torch.Tensor, weights: Tuple[torch.Tensor,
     Per axis the mix ``w d_+ + (1 - w) d_-`` of the forward and backward differences where both
     exist, the one that exists at the mask edge, 0 where none does; ``n = normalize(-dz/dcol,
     dz/drow, 1)`` as :func:`torch_hsh.surface.depth_to_normals`.
+
+    Args:
+        z: ``(h, w)`` depth in pixel units (values outside ``m`` are ignored).
+        m: ``(h, w)`` bool mask.
+        weights: ``(rows, cols)`` forward-difference weights, ``(h, w)`` each
+            (:func:`discontinuity_weights`; ``0.5`` everywhere gives central differences).
+
+    Returns:
+        ``(h, w, 3)`` unit normals (DiLiGenT frame: x right, y up, z toward the camera).
+
+    Example:
+        >>> z = torch.arange(4.0).expand(3, 4) * 0.75  # rises to the right
+        >>> half = torch.full((3, 4), 0.5)
+        >>> depth_normals(z, torch.ones(3, 4, dtype=torch.bool), (half, half))[1, 1]
+        tensor([-0.6000,  0.0000,  0.8000])
     """
     z = torch.where(m, z, torch.zeros_like(z))
     slopes = []
