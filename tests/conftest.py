@@ -102,3 +102,23 @@ def blinn_phong_ps_scene(p: int, l: int, seed: int = 0):
 def ps_scene():
     """The builder :func:`random_ps_scene` (for tests that take it as a fixture)."""
     return random_ps_scene
+
+
+def edge_case_dirs(n: int, seed: int, dtype=torch.float64, special: bool = True) -> torch.Tensor:
+    """``(n, 3)`` random upper-hemisphere directions; with ``special`` the first 8 rows are the kernels' edge
+    cases (pole, horizon, within eps of it, zero vector, below the horizon, not normalised, near the pole)."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    d[:, 2] = d[:, 2].abs()
+    if special:
+        d[:8] = torch.tensor([
+            [0.0, 0.0, 1.0],  # pole
+            [1.0, 0.0, 0.0],  # horizon
+            [0.6, -0.8, 1e-13],  # within eps of the horizon (float64)
+            [0.6, 0.8, 3e-6],  # just above the float32 eps
+            [0.0, 0.0, 0.0],  # zero vector
+            [0.3, 0.1, -0.5],  # below the horizon
+            [2.0, -1.0, 0.5],  # not normalised
+            [1e-9, 0.0, 1.0],  # near the pole
+        ], dtype=torch.float64)
+    return d.to(dtype)

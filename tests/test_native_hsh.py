@@ -23,28 +23,15 @@ import torch
 
 import torch_hsh
 from torch_hsh import kernel as K
+from conftest import edge_case_dirs
 
 F64 = torch.float64
 HAS_NATIVE = torch_hsh.backend_status()["isotropic_cpu"] == "native"
 pytestmark = pytest.mark.skipif(not HAS_NATIVE, reason="no C compiler: the fused kernels are not built here")
 
 
-def _dirs(n, seed, dtype=F64, special=True):
-    g = torch.Generator().manual_seed(seed)
-    d = torch.randn(n, 3, generator=g, dtype=F64)
-    d[:, 2] = d[:, 2].abs()
-    if special:
-        d[:8] = torch.tensor([
-            [0.0, 0.0, 1.0],  # pole
-            [1.0, 0.0, 0.0],  # horizon
-            [0.6, -0.8, 1e-13],  # within eps of the horizon (float64)
-            [0.6, 0.8, 3e-6],  # just above the float32 eps
-            [0.0, 0.0, 0.0],  # zero vector
-            [0.3, 0.1, -0.5],  # below the horizon
-            [2.0, -1.0, 0.5],  # not normalised
-            [1e-9, 0.0, 1.0],  # near the pole
-        ], dtype=F64)
-    return d.to(dtype)
+_dirs = edge_case_dirs
+
 
 
 def _native(d, order):
