@@ -103,7 +103,7 @@ class _Depth:
     rows: torch.Tensor  # (P,) flat indices of the masked pixels in the crop, in the solver's pixel order
 
     @classmethod
-    def start(cls, normals: torch.Tensor, mask: torch.Tensor, dtype, method: str = "poisson") -> "_Depth":
+    def start(cls, normals: torch.Tensor, mask: torch.Tensor, dtype, method: str = _START_METHOD) -> "_Depth":
         from ..surface import integrate_normals
 
         r = mask.any(1).nonzero().squeeze(1)
@@ -218,19 +218,23 @@ def _chunks(P: int):
     return [slice(s, min(P, s + _CHUNK)) for s in range(0, P, _CHUNK)]
 
 
-def _mixing(data: _Data, n: torch.Tensor, w: torch.Tensor):
-    """Closed-form mixing weights ``(P, M, C)`` with Cauchy IRLS at normals ``n``; returns ``W`` and the robust weights."""
-    P = n.shape[0]
-    Ws, ws = [], []
+def _fit_chunks(data: _Data, n: torch.Tensor, w: torch.Tensor, rows: Optional[torch.Tensor] = None):
+    """Per chunk of pixels: closed-form mixing weights ``(p, M, C)`` with Cauchy IRLS at normals ``n``, the robust
+    weights and the residuals ``(p, L)`` after the fit. ``n`` and ``w`` are of the pixels ``rows`` (default: all)."""
     with torch.no_grad():
-        for sl in _chunks(P):
+        for sl in _chunks(n.shape[0]):
+            y = data.y[sl] if rows is None else data.y[rows[sl]]
             Psi = data.design(n[sl].to(data.y.dtype))
-            wr, _ = irls_weights(Psi, data.y[sl], w[sl], w[sl], data.scale, data.c, _IRLS)
-            W, _, _ = solve_weights(Psi, wr, data.y[sl], _ridge_diag(Psi, wr, 1e-4))
-            res = observation_residual(Psi, W, data.y[sl])
-            Ws.append(W)
-            ws.append(cauchy_weights(res, w[sl], data.scale, data.c))
-    return torch.cat(Ws), torch.cat(ws)
+            wr, _ = irls_weights(Psi, y, w[sl], w[sl], data.scale, data.c, _IRLS)
+            W, _, _ = solve_weights(Psi, wr, y, _ridge_diag(Psi, wr, 1e-4))
+            res = observation_residual(Psi, W, y)
+            yield sl, W, cauchy_weights(res, w[sl], data.scale, data.c), res
+
+
+def _mixing(data: _Data, n: torch.Tensor, w: torch.Tensor):
+    """Mixing weights ``(P, M, C)`` and robust weights ``(P, L)`` of every pixel at normals ``n`` (:func:`_fit_chunks`)."""
+    fits = [(W, wr) for _, W, wr, _ in _fit_chunks(data, n, w)]
+    return torch.cat([f[0] for f in fits]), torch.cat([f[1] for f in fits])
 
 
 def _heldout_error(data: _Data, n: torch.Tensor, w: torch.Tensor, sub: torch.Tensor) -> float:
@@ -239,17 +243,12 @@ def _heldout_error(data: _Data, n: torch.Tensor, w: torch.Tensor, sub: torch.Ten
     pixels; zero on the held-out lights)."""
     test = ~data.train
     tot, cnt = 0.0, 0.0
-    with torch.no_grad():
-        for sl in _chunks(sub.numel()):
-            rows = sub[sl]
-            Psi = data.design(n[sl].to(data.y.dtype))
-            wr, _ = irls_weights(Psi, data.y[rows], w[sl], w[sl], data.scale, data.c, _IRLS)
-            W, _, _ = solve_weights(Psi, wr, data.y[rows], _ridge_diag(Psi, wr, 1e-4))
-            r = observation_residual(Psi, W, data.y[rows])[:, test]
-            v = data.w0[rows][:, test] > 0
-            rho = torch.log1p((r / (data.c * data.scale)) ** 2)
-            tot += float(torch.where(v, rho, torch.zeros_like(rho)).sum())
-            cnt += float(v.sum())
+    for sl, _, _, res in _fit_chunks(data, n, w, sub):
+        r = res[:, test]
+        v = data.w0[sub[sl]][:, test] > 0
+        rho = torch.log1p((r / (data.c * data.scale)) ** 2)
+        tot += float(torch.where(v, rho, torch.zeros_like(rho)).sum())
+        cnt += float(v.sum())
     return tot / max(cnt, 1.0)
 
 
@@ -386,7 +385,7 @@ def refine_surface(
     data = _Data(y=d.y.to(wdt).transpose(1, 2).contiguous(), w0=obs.weights.to(wdt),
                  design=MixedDesign(basis.to(wdt), d.lights.to(wdt), result.order),
                  scale=scale_u, c=cfg.cauchy_c, train=train, basis=basis)
-    dep = _Depth.start(result.normals.to(dt), result.mask, dt, _START_METHOD)
+    dep = _Depth.start(result.normals.to(dt), result.mask, dt)
     n_start = result.normals.to(dt)[result.mask]
     log = _run_rounds(data, dep, n_start, d.lights, rounds, cfg)
     info = dict(result.info)
