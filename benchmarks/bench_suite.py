@@ -122,14 +122,10 @@ def main(argv=None):
     records = {}
     for sc in scenes:
         t0 = time.perf_counter()
-        try:
-            folder = suite_mod.scene_folder(sc, shared=shared, mitsuba_root=args.mitsuba_root,
-                                            threads=args.render_threads, progress=_render_progress)
-        except ImportError as err:
-            print(f"  {sc.name}: skipped ({sc.kind}: {err}; install the bench extra)", flush=True)
-            continue
+        folder, why = suite_mod.available_folder(sc, shared=shared, mitsuba_root=args.mitsuba_root,
+                                                 threads=args.render_threads, progress=_render_progress)
         if folder is None:
-            print(f"  {sc.name}: skipped (capture not found under {shared}; pass --shared DIR)", flush=True)
+            print(f"  {sc.name}: skipped ({why})", flush=True)
             continue
         prep = time.perf_counter() - t0
         rec = {"kind": sc.kind, "params": sc.params, "folder": str(folder), "prepare_s": prep, "stages": {}}

@@ -172,3 +172,15 @@ def scene_folder(scene: Scene, shared: Optional[Path] = None, mitsuba_root: Opti
         f = Path(shared) / scene.params["folder"]
         return f if (f / "light_directions.txt").is_file() else None
     raise ValueError(f"unknown scene kind {scene.kind!r}")
+
+
+def available_folder(scene: Scene, shared: Optional[Path] = None, **kw) -> Tuple[Optional[Path], str]:
+    """:func:`scene_folder` for the scripts that loop over the suite: ``(folder, "")``, or ``(None, why)``
+    when the scene cannot be had here (Mitsuba not installed, capture not found under ``shared``)."""
+    try:
+        folder = scene_folder(scene, shared=shared, **kw)
+    except ImportError as err:
+        return None, f"{scene.kind}: {err}; install the bench extra"
+    if folder is None:
+        return None, f"capture not found under {shared}; pass --shared DIR"
+    return folder, ""

@@ -63,16 +63,10 @@ def main(argv=None) -> int:
     cols = [f"{m} {s}" for m in methods for s in ("central", "one-sided mix")]
     print("| scene | " + " | ".join(cols) + " |\n|" + "---|" * (len(cols) + 1), flush=True)
     for sc in scenes:
-        try:
-            folder = suite_mod.scene_folder(sc, shared=shared)
-        except ImportError as err:
-            print(f"| {sc.name} | skipped ({err}) |", flush=True)
-            continue
-        if folder is None:
-            print(f"| {sc.name} | skipped (not found under {shared}) |", flush=True)
-            continue
-        d = load_diligent(folder)
-        if d.normals_gt is None:
+        folder, why = suite_mod.available_folder(sc, shared=shared)
+        d = None if folder is None else load_diligent(folder)
+        if d is None or d.normals_gt is None:
+            print(f"| {sc.name} | skipped ({why or 'no ground-truth normals'}) |", flush=True)
             continue
         row = floor_row(d.normals_gt, d.mask, methods)
         print(f"| {sc.name} | " + " | ".join(f"{row[c]:.2f}" for c in cols) + " |", flush=True)
