@@ -50,7 +50,7 @@ class HSHResult:
         confidence: ``(*S)`` per-pixel confidence in ``[0, 1]`` (0 outside the
             mask and where fewer than 4 observations are valid): the coverage
             by inlier observations times the Cauchy weight of the pixel's
-            residual (see :func:`torch_hsh.ps.pipeline.confidence`). Threshold it
+            residual (see :func:`torch_hsh.ps.result.confidence`). Threshold it
             to keep reliable pixels.
         depth: ``(*S)`` height map in pixel units (z toward the camera, NaN
             outside the mask) of the whole-surface stage
