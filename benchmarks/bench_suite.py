@@ -5,6 +5,7 @@ Usage:
     python benchmarks/bench_suite.py --shared ../shared/data          # captures read in place from here
     python benchmarks/bench_suite.py --kinds mitsuba synthetic --seeds 0 --json /tmp/suite.json
     python benchmarks/bench_suite.py --only bowl_principled --seeds 0 1
+    python benchmarks/bench_suite.py --stages per-pixel --seeds 0 --basis-ridge 1e-3   # a default's sweep
     python benchmarks/bench_suite.py --quick                          # CI: tiny scenes, seed 0, 1 thread
 
 The scenes are defined in ``benchmarks/suite.py`` (fixed before tuning): Mitsuba 3 path-traced
@@ -97,6 +98,8 @@ def main(argv=None):
     ap.add_argument("--stages", nargs="+", default=None, choices=sorted(set(_STAGE_KEYS.values())),
                     help="run only these columns (per-pixel: solve_hsh; shadows: cast_shadows=1; surface / "
                          "surface-shadows: the whole-surface stage); default all")
+    ap.add_argument("--basis-ridge", type=float, default=None,
+                    help="solve_hsh(basis_ridge=...) of every solve (default: the library's default)")
     ap.add_argument("--json", default=None, help="write every record to this JSON file")
     args = ap.parse_args(argv)
     threads = args.threads or (1 if args.quick else 2)
@@ -117,6 +120,8 @@ def main(argv=None):
     want = set(args.stages or _STAGE_KEYS.values()) - ({"shadows"} if args.no_shadows else set())
     stages = [s for s in STAGES if s[1] is None or _STAGE_KEYS[s[0]] in want]
     common = ["--threads", threads] + (["--max-pixels", max_pixels] if max_pixels else [])
+    if args.basis_ridge is not None:
+        common += ["--basis-ridge", args.basis_ridge]
     print(f"suite: {len(scenes)} scene(s), solver seeds {' '.join(map(str, seeds))}, {threads} thread(s) per solve"
           + (f", at most {max_pixels} mask px" if max_pixels else ""), flush=True)
     records = {}

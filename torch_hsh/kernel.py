@@ -684,12 +684,14 @@ def backend_status() -> Dict[str, Optional[str]]:
     Returns:
         dict with ``backend``, ``hsh`` (``"sphericart"`` or ``"torch"``: the HSH kernel on other devices
         than the CPU), ``hsh_cpu`` (``"native"``, ``"sphericart"`` or ``"torch"``), ``isotropic_cpu``
-        (``"native"`` or ``"torch"``), ``sphericart_error`` and ``native_error``.
+        (``"native"`` or ``"torch"``), ``native_threads`` (``"openmp"``: the C kernels split their rows over
+        torch's own OpenMP threads; ``"pool (why)"``: over a Python thread pool; None: no C kernels),
+        ``sphericart_error`` and ``native_error``.
 
     Example:
         >>> import torch_hsh
         >>> sorted(torch_hsh.backend_status())
-        ['backend', 'hsh', 'hsh_cpu', 'isotropic_cpu', 'native_error', 'sphericart_error']
+        ['backend', 'hsh', 'hsh_cpu', 'isotropic_cpu', 'native_error', 'native_threads', 'sphericart_error']
     """
     auto = _BACKEND["name"] == "auto"
     sct = _sphericart_module() if auto else None
@@ -702,6 +704,7 @@ def backend_status() -> Dict[str, Optional[str]]:
         "isotropic_cpu": "native" if lib is not None else "torch",
         "sphericart_error": _SPHERICART.get("error") if auto else None,  # type: ignore[dict-item]
         "native_error": _native.native_status()["error"] if auto else None,
+        "native_threads": _native.native_status()["threads"] if lib is not None else None,
     }
 
 

@@ -136,6 +136,37 @@ LOAD_ROWS(float, f32)
 LOAD_ROWS(double, f64)
 #undef LOAD_ROWS
 
+/* PAR(name, (params), (args)) defines name_par(n, step, nt, params): the row kernel name over [0, n) in
+ * ranges of step rows (a multiple of BS, so that the blocks, and the values, do not depend on the split),
+ * taken in turn by the nt threads of an OpenMP team. Compiled with -fopenmp, the team is that of the
+ * OpenMP runtime already in the process, i.e. torch's own intra-op threads (torch's wheels load
+ * libgomp.so.1, and the loader gives this library the same copy), so the kernels and torch's operators
+ * share one set of threads instead of competing for the cores. Without OpenMP it runs the ranges in
+ * order on the caller's thread. The return code is the bitwise or of the ranges' codes (1: no scratch
+ * memory, 2: a non-finite input). */
+#define UNPACK(...) __VA_ARGS__
+#define PAR(NAME, PARAMS, ARGS)                                                                                     \
+    int SUF(NAME##_par)(int64_t n, int64_t step, int nt, UNPACK PARAMS)                                             \
+    {                                                                                                               \
+        int code = 0;                                                                                               \
+        const int64_t chunks = (n + step - 1) / step;                                                               \
+        (void)nt;                                                                                                   \
+        OMP_FOR                                                                                                     \
+        for (int64_t c = 0; c < chunks; ++c) {                                                                      \
+            const int64_t r0 = c * step, r1 = r0 + step < n ? r0 + step : n;                                        \
+            const int rc = SUF(NAME)(r0, r1, UNPACK ARGS);                                                          \
+            code |= rc;                                                                                             \
+        }                                                                                                           \
+        return code;                                                                                                \
+    }
+#ifdef _OPENMP
+#define OMP_FOR _Pragma("omp parallel for num_threads(nt) schedule(dynamic, 1) reduction(| : code)")
+int torch_hsh_openmp(void) { return 1; }
+#else
+#define OMP_FOR
+int torch_hsh_openmp(void) { return 0; }
+#endif
+
 #define T float
 #define SUF(name) name##_f32
 #define SQRT sqrtf

@@ -595,6 +595,29 @@ int SUF(hsh_bwd)(int64_t r0, int64_t r1, int P, const T *d, T tiny, T eps, HSH_A
     free(scratch);
     return 0;
 }
+
+/* ---- The same kernels over all rows [0, n) on the OpenMP team (PAR in kernels.c) ---- */
+PAR(iso_core_fwd, (const T *zi, const T *zo, const T *a, const T *rho, const T *sio, const uint8_t *valid, CORE_ARGS,
+                   T *out),
+    (zi, zo, a, rho, sio, valid, CORE_PASS, out))
+PAR(iso_core_bwd, (const T *zi, const T *zo, const T *a, const T *rho, const T *sio, const uint8_t *valid, CORE_ARGS,
+                   const T *gout, int64_t gs0, int64_t gs1, T *gzi, T *gzo, T *ga, T *grho, T *gsio),
+    (zi, zo, a, rho, sio, valid, CORE_PASS, gout, gs0, gs1, gzi, gzo, ga, grho, gsio))
+PAR(iso_dirs_fwd, (const T *wi, const T *wo, T tiny, T eps, CORE_ARGS, T *out), (wi, wo, tiny, eps, CORE_PASS, out))
+PAR(iso_dirs_bwd, (const T *wi, const T *wo, T tiny, T eps, CORE_ARGS, const T *gout, int64_t gs0, int64_t gs1,
+                   T *gwi, T *gwo),
+    (wi, wo, tiny, eps, CORE_PASS, gout, gs0, gs1, gwi, gwo))
+PAR(hsh_remap_fwd, (const T *d, T tiny, T eps, T *dp, uint8_t *valid), (d, tiny, eps, dp, valid))
+PAR(hsh_remap_bwd, (const T *d, T tiny, T eps, const T *gdp, T *gd), (d, tiny, eps, gdp, gd))
+PAR(pair_fwd, (const T *Am, const T *Bm, int H, int Q, const int32_t *pj, const int32_t *pk, const T *pc, T *out),
+    (Am, Bm, H, Q, pj, pk, pc, out))
+PAR(pair_bwd, (const T *Am, const T *Bm, int H, int Q, const int32_t *pj, const int32_t *pk, const T *pc,
+               const T *gout, int64_t gs0, int64_t gs1, T *gA, T *gB),
+    (Am, Bm, H, Q, pj, pk, pc, gout, gs0, gs1, gA, gB))
+PAR(hsh_fwd, (int P, const T *d, T tiny, HSH_ARGS, T *out), (P, d, tiny, HSH_PASS, out))
+PAR(hsh_bwd, (int P, const T *d, T tiny, T eps, HSH_ARGS, const T *gout, int64_t gs0, int64_t gs1, T *gd),
+    (P, d, tiny, eps, HSH_PASS, gout, gs0, gs1, gd))
+
 #undef HSH_ARGS
 #undef HSH_PASS
 #undef HSH_SCRATCH
