@@ -288,6 +288,34 @@ def test_bad_compiler_is_reported(tmp_path):
     assert "no C compiler" in out.stdout
 
 
+@pytest.mark.skipif(not HAS_NATIVE or sys.platform == "win32", reason="needs the C kernels and a POSIX shell")
+def test_compiler_without_openmp_builds_for_the_thread_pool(tmp_path):
+    """A compiler that rejects -fopenmp still gives the kernels (on the Python pool), and the failed
+    OpenMP build is remembered instead of retried at every start."""
+    import shlex
+    import sysconfig
+
+    real = shlex.split(os.environ.get("CC") or sysconfig.get_config_var("CC") or "cc")[0]
+    cc = tmp_path / "cc-no-openmp"
+    cc.write_text("#!/bin/sh\nfor a in \"$@\"; do [ \"$a\" = -fopenmp ] && { echo 'no OpenMP' >&2; exit 1; }; done\n"
+                  f'exec {shlex.quote(real)} "$@"\n')
+    cc.chmod(0o755)
+    code = ("import torch, torch_hsh\nfrom torch_hsh import _native\n"
+            "torch.set_num_threads(2)\n"
+            "d = torch.nn.functional.normalize(torch.rand(20000, 3), dim=-1)\n"
+            "y = torch_hsh.helmholtz_isotropic(d, d.flip(0), 3)\n"
+            "torch_hsh.set_backend('torch')\n"
+            "ok = torch.allclose(y, torch_hsh.helmholtz_isotropic(d, d.flip(0), 3), atol=1e-5)\n"
+            "print(_native.native_status()['threads'], ok)\n")
+    env = dict(os.environ, CC=str(cc), TORCH_HSH_CACHE=str(tmp_path / "cache"))
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.split() == ["pool", "(compiled", "without", "OpenMP)", "True"], out.stdout
+    files = sorted(p.suffix for p in (tmp_path / "cache").iterdir())
+    assert files == [".no-openmp", ".so"]
+
+
 def _remap(d):
     """The documented map to the sphere: d' = (s x, s y, 2z - 1), s = 2 sqrt(z / (1 + z))."""
     d = torch.nn.functional.normalize(d, dim=-1)

@@ -79,22 +79,33 @@ def _build(cc: List[str]) -> Path:
     except (OSError, subprocess.SubprocessError) as exc:
         raise RuntimeError(f"no C compiler ({' '.join(cc)}): {exc}") from None
     flags = ["-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-std=gnu99", "-shared", "-fPIC"]
-    try:
-        return _compile(cc, flags + ["-fopenmp"], src, version)
-    except RuntimeError as exc:
+    omp = _library_path(flags + ["-fopenmp"], src, version)
+    no_omp = omp.with_suffix(".no-openmp")  # marker: this compiler failed with -fopenmp (do not retry)
+    if not no_omp.exists():
         try:
-            return _compile(cc, flags, src, version)
-        except RuntimeError:
-            raise exc from None
+            return _compile(cc, flags + ["-fopenmp"], omp)
+        except RuntimeError as exc:
+            try:
+                path = _compile(cc, flags, _library_path(flags, src, version))
+            except RuntimeError:
+                raise exc from None
+            no_omp.write_text(str(exc))
+            return path
+    return _compile(cc, flags, _library_path(flags, src, version))
 
 
-def _compile(cc: List[str], flags: List[str], src: bytes, version: str) -> Path:
+def _library_path(flags: List[str], src: bytes, version: str) -> Path:
+    """Cache path of the library built from ``src`` with ``flags`` by this compiler, on this machine."""
     key = hashlib.sha256(src + version.encode() + " ".join(flags).encode() + platform.machine().encode()
                          + _cpu_tag().encode()).hexdigest()[:16]
-    out_dir = _cache_dir()
-    path = out_dir / f"torch_hsh_kernels_{key}.so"
+    return _cache_dir() / f"torch_hsh_kernels_{key}.so"
+
+
+def _compile(cc: List[str], flags: List[str], path: Path) -> Path:
+    """``path``, compiled first where it is not in the cache."""
     if path.exists():
         return path
+    out_dir = path.parent
     out_dir.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.stem, suffix=".so.tmp", dir=out_dir)
     os.close(fd)
