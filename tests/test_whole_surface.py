@@ -105,6 +105,23 @@ def test_noisy_start_normals_are_cleaned_by_the_depth(demo):
     assert torch.isfinite(relit).all()
 
 
+def test_the_polish_starts_from_the_depth_and_removes_its_grid_floor(demo):
+    # surface_polish re-estimates each normal per pixel from the depth's normals; the depth is the same either way
+    s, res = demo
+    m = s["mask"]
+    g = torch.Generator().manual_seed(0)
+    noisy = s["normals_gt"].to(res.normals) + 0.15 * torch.randn(res.normals.shape, generator=g, dtype=res.normals.dtype)
+    start = dataclasses.replace(res, normals=torch.nn.functional.normalize(noisy, dim=-1) * m.unsqueeze(-1))
+    kw = dict(surface_safeguard=False)
+    pol = ps.refine_surface(start, s["images"], s["lights"], s["intensities"], **kw)
+    raw = ps.refine_surface(start, s["images"], s["lights"], s["intensities"], surface_polish=False, **kw)
+    assert torch.equal(pol.depth[m], raw.depth[m])
+    e_start, e_raw, e_pol, e_solve = _err(start.normals, s), _err(raw.normals, s), _err(pol.normals, s), _err(res.normals, s)
+    # measured: 10.8 deg noisy start, 4.0 the depth's normals, 1.57 polished, 1.62 the per-pixel solve itself
+    assert e_pol < 0.6 * e_raw and e_pol < 1.1 * e_solve, (e_start, e_raw, e_pol, e_solve)
+    assert torch.allclose(pol.normals[m].norm(dim=-1), torch.ones(int(m.sum()), dtype=pol.normals.dtype))
+
+
 def test_a_worse_surface_is_not_returned(demo, monkeypatch):
     s, res = demo
     real = ws._depth_step

@@ -47,7 +47,7 @@ _CHUNKS_PER_THREAD = 4  # row ranges per thread (taken dynamically, see _run_chu
 _state: Dict[str, object] = {"lib": None, "tried": False, "error": None, "path": None}
 _lock = threading.Lock()
 _pool: Optional[ThreadPoolExecutor] = None
-_PAR: Dict[str, ctypes._CFuncPtr] = {}  # row kernel's name -> its OpenMP driver (PAR in kernels.c)
+_PAR: Dict[str, Callable[..., int]] = {}  # row kernel's name -> its OpenMP driver (PAR in kernels.c)
 
 
 def _compiler() -> List[str]:
@@ -146,7 +146,7 @@ def _declare(lib: ctypes.CDLL) -> None:
             fn.argtypes = argtypes
             fn.restype = ctypes.c_int  # 0, or 1 where a scratch buffer could not be allocated
             par = getattr(lib, f"{name}_par_{suf}")  # (n, step, nt) + the row kernel's arguments after r0, r1
-            par.argtypes = [_I64, _I64, _INT] + argtypes[2:]
+            par.argtypes = [_I64, _I64, _INT] + argtypes[2:]  # type: ignore[index]
             par.restype = ctypes.c_int
             _PAR[fn.__name__] = par
     lib.torch_hsh_openmp.restype = ctypes.c_int

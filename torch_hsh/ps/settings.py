@@ -356,6 +356,9 @@ class Settings:
     surface_iterations: int = _option(SURFACE_ITERATIONS, "L-BFGS iterations of the depth per round of that stage.",
                                       _check_surface_iterations)
     surface_shadows: bool = _option(True, "that stage re-computes the cast shadows from its depth every round.")
+    surface_polish: bool = _option(True, """that stage ends with the solver's per-pixel stage started from the
+        depth's normals (every light, the depth's cast shadows): the returned
+        normals are those, not the depth's own (``False``: the depth's).""")
     surface_holdout: float = _option(0.1, """fraction of the lights that stage holds out of its fits to
         decide whether the refined surface is kept.""", _check_surface_holdout)
     surface_safeguard: bool = _option(True, """that stage returns its start when the held-out error rises
