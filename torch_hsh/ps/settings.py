@@ -347,7 +347,8 @@ class Settings:
         to cast a shadow in that loop (depth-noise margin).""", _check_shadow_bias)
     refine_surface: int = _option(0, """rounds of the whole-surface stage after the solve (default 0: off;
         ``True``: :data:`SURFACE_ROUNDS`): one depth map whose normals, the
-        shared BRDFs and the shadows it casts explain the images, accepted
+        shared BRDFs and the shadows it casts explain the images, then every
+        normal re-estimated per pixel from it (``surface_polish``), accepted
         only if it lowers the error of held-out lights (see
         :mod:`torch_hsh.ps.whole_surface`; shared model, ``(L, H, W, C)`` images).""", _check_refine_surface,
         cli={"flag": "--refine-surface", "const": SURFACE_ROUNDS,
