@@ -158,6 +158,42 @@ def test_openmp_team_and_thread_pool_agree_bitwise(monkeypatch):
         assert torch.equal(x, y) and torch.equal(x, z)
 
 
+@pytest.mark.skipif(not HAS_NATIVE, reason="needs the C kernels")
+@pytest.mark.parametrize("order", sorted(basis._ISO_SMALL_ORDERS))
+def test_generated_low_order_kernels_match_the_general_kernel(order, monkeypatch):
+    """The straight-line isotropic kernels (``_native/generate.py``) against the general C kernel that takes
+    the same tables at run time: float64 values and gradients to rounding, on the special points too, and
+    float32 no further from float64 than the general kernel's float32."""
+    a, b = _dirs(3000, 20), _dirs(3000, 21)
+
+    def run(x, y, small):
+        monkeypatch.setattr(basis, "_ISO_SMALL_ORDERS", frozenset({order}) if small else frozenset())
+        x, y = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
+        out = torch_hsh.helmholtz_isotropic(x, y, order)
+        w = torch.linspace(-1.0, 2.0, out.numel(), dtype=out.dtype).reshape(out.shape)
+        return [out.detach()] + list(torch.autograd.grad((out * w).sum(), [x, y]))
+
+    gen, ref = run(a, b, True), run(a, b, False)
+    for u, v in zip(gen, ref):
+        assert torch.isfinite(u).all()
+        torch.testing.assert_close(u, v, rtol=0, atol=1e-13 * max(1.0, float(v.abs().max())))
+    a, b = _dirs(3000, 22, special=False), _dirs(3000, 23, special=False)
+    exact = run(a, b, False)
+    for small in (True, False):
+        got = run(a.float(), b.float(), small)
+        errs = [float((g.double() - e).abs().max() / e.abs().max()) for g, e in zip(got, exact)]
+        if small:
+            gen_errs = errs
+    assert all(g <= 2.0 * e + 1e-7 for g, e in zip(gen_errs, errs)), (gen_errs, errs)
+
+
+def test_generated_kernel_file_is_up_to_date():
+    """``kernels_iso_small.h`` is what ``python -m torch_hsh._native.generate`` writes from today's tables."""
+    from torch_hsh._native import generate
+
+    assert generate.TARGET.read_text() == generate.source(), "run: python -m torch_hsh._native.generate"
+
+
 def test_high_order_and_empty_and_leading_shapes():
     a, b = _dirs(50, 8), _dirs(50, 9)
     (ya, ga), (yt, gt) = _both(lambda x, y: torch_hsh.helmholtz_isotropic(x, y, 30), a, b)

@@ -68,6 +68,7 @@ from typing import Dict, Optional, Tuple
 import torch
 
 from . import _native
+from ._native import generate as _native_generate
 from ._checks import (
     MAX_ANISOTROPIC_ORDER,
     broadcast_shapes,
@@ -846,6 +847,10 @@ class _IsoCore(torch.autograd.Function):
         return tuple(grads)
 
 
+#: Orders at which the fused isotropic kernel is generated straight-line code (``_native/generate.py``).
+_ISO_SMALL_ORDERS = frozenset(_native_generate.ORDERS)
+
+
 def _iso_geom_torch(wi: torch.Tensor, wo: torch.Tensor):
     """(zi, zo, a, rho, sio, valid) of flat local direction pairs (pure torch, as :func:`_iso_dirs`)."""
     xi, yi, zi, vi = _unit(wi)
@@ -855,19 +860,35 @@ def _iso_geom_torch(wi: torch.Tensor, wo: torch.Tensor):
     return zi, zo, a, rho, _safe_s(zi) * _safe_s(zo), vi & vo
 
 
+def _iso_dirs_native(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
+    """The fused forward of :class:`_IsoDirs` (no autograd): flat ``(N, 3), (N, 3) -> (N, K)``."""
+    wi_c, wo_c = wi.contiguous(), wo.contiguous()
+    n, dt = wi.shape[0], wi.dtype
+    K, tab = _iso_core_args(order, dt)
+    out = wi.new_empty((n, K))
+    lib, sfx = _native.library(), _suffix(dt)
+    if order in _ISO_SMALL_ORDERS:  # straight-line code with the tables built in (generate.py)
+        fn, tab = getattr(lib, "iso_small_fwd_" + sfx), ()
+        head: tuple = (order,)
+    else:
+        fn, head = getattr(lib, "iso_dirs_fwd_" + sfx), ()
+    bad = _native.parallel_rows(fn, n, *head, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
+                                _horizon_eps(dt), *tab, _native.ptr(out))
+    _recheck(bad, [("wi", wi), ("wo", wo)])
+    return out
+
+
+def _needs_grad(*xs: torch.Tensor) -> bool:
+    """Whether autograd would record an operation on ``xs`` (else a kernel skips ``Function.apply``)."""
+    return torch.is_grad_enabled() and any(x.requires_grad for x in xs)
+
+
 class _IsoDirs(torch.autograd.Function):
     """``kernels.c`` iso_dirs: the isotropic basis of two flat (N, 3) direction sets, geometry fused."""
 
     @staticmethod
     def forward(ctx, wi, wo, order):
-        wi_c, wo_c = wi.contiguous(), wo.contiguous()
-        n, dt = wi.shape[0], wi.dtype
-        K, tab = _iso_core_args(order, dt)
-        out = wi.new_empty((n, K))
-        fn = getattr(_native.library(), "iso_dirs_fwd_" + _suffix(dt))
-        bad = _native.parallel_rows(fn, n, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
-                                    _horizon_eps(dt), *tab, _native.ptr(out))
-        _recheck(bad, [("wi", wi), ("wo", wo)])
+        out = _iso_dirs_native(wi, wo, order)
         ctx.order = order
         ctx.save_for_backward(wi, wo)
         return out
@@ -897,8 +918,13 @@ class _IsoDirs(torch.autograd.Function):
         _, tab = _iso_core_args(ctx.order, dt)
         wi_c, wo_c = wi.contiguous(), wo.contiguous()  # kept alive across the call
         g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
-        fn = getattr(_native.library(), "iso_dirs_bwd_" + _suffix(dt))
-        _native.parallel_rows(fn, n, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
+        lib, sfx = _native.library(), _suffix(dt)
+        if ctx.order in _ISO_SMALL_ORDERS:
+            fn, tab = getattr(lib, "iso_small_bwd_" + sfx), ()
+            head: tuple = (ctx.order,)
+        else:
+            fn, head = getattr(lib, "iso_dirs_bwd_" + sfx), ()
+        _native.parallel_rows(fn, n, *head, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
                               _horizon_eps(dt), *tab, _native.ptr(g), g.stride(0), g.stride(1),
                               _native.ptr(gwi), _native.ptr(gwo))
         return gwi, gwo, None
@@ -1158,7 +1184,9 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
     order = check_order(order)
     K = (order + 1) * (order + 2) * (order + 3) // 6
     # fused C kernels (geometry, then the basis), else the torch kernel in row chunks
-    return _pair_basis(wi, wo, K, lambda a, b: _IsoDirs.apply(a, b, order), lambda a, b: _iso_dirs(a, b, order))
+    return _pair_basis(wi, wo, K,
+                       lambda a, b: _IsoDirs.apply(a, b, order) if _needs_grad(a, b) else _iso_dirs_native(a, b, order),
+                       lambda a, b: _iso_dirs(a, b, order))
 
 
 def _pair_basis(wi, wo, K, native, flat):

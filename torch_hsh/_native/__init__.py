@@ -39,7 +39,7 @@ from typing import Callable, Dict, List, Optional
 import torch
 
 _SRC = Path(__file__).with_name("kernels.c")
-_SOURCES = (_SRC, Path(__file__).with_name("kernels_impl.h"))
+_SOURCES = (_SRC, Path(__file__).with_name("kernels_impl.h"), Path(__file__).with_name("kernels_iso_small.h"))
 _BLOCK = 64  # rows per block in kernels.c (BS)
 _MIN_ROWS_PER_THREAD = 2048
 _CHUNKS_PER_THREAD = 4  # row ranges per thread (taken dynamically, see _run_chunks)
@@ -134,6 +134,8 @@ def _declare(lib: ctypes.CDLL) -> None:
             "iso_core_bwd": [_I64, _I64] + [_P] * 6 + core + [_P, _I64, _I64] + [_P] * 5,
             "iso_dirs_fwd": [_I64, _I64, _P, _P, real, real] + core + [_P],
             "iso_dirs_bwd": [_I64, _I64, _P, _P, real, real] + core + [_P, _I64, _I64, _P, _P],
+            "iso_small_fwd": [_I64, _I64, _INT, _P, _P, real, real, _P],
+            "iso_small_bwd": [_I64, _I64, _INT, _P, _P, real, real, _P, _I64, _I64, _P, _P],
             "hsh_fwd": [_I64, _I64, _INT, _P, real] + hsh + [_P],
             "hsh_bwd": [_I64, _I64, _INT, _P, real, real] + hsh + [_P, _I64, _I64, _P],
             "hsh_remap_fwd": [_I64, _I64, _P, real, real, _P, _P],

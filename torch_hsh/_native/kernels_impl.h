@@ -596,6 +596,9 @@ int SUF(hsh_bwd)(int64_t r0, int64_t r1, int P, const T *d, T tiny, T eps, HSH_A
     return 0;
 }
 
+/* ---- The isotropic basis at low orders as straight-line code (generated: iso_small_fwd / iso_small_bwd) ---- */
+#include "kernels_iso_small.h"
+
 /* ---- The same kernels over all rows [0, n) on the OpenMP team (PAR in kernels.c) ---- */
 PAR(iso_core_fwd, (const T *zi, const T *zo, const T *a, const T *rho, const T *sio, const uint8_t *valid, CORE_ARGS,
                    T *out),
@@ -607,6 +610,10 @@ PAR(iso_dirs_fwd, (const T *wi, const T *wo, T tiny, T eps, CORE_ARGS, T *out), 
 PAR(iso_dirs_bwd, (const T *wi, const T *wo, T tiny, T eps, CORE_ARGS, const T *gout, int64_t gs0, int64_t gs1,
                    T *gwi, T *gwo),
     (wi, wo, tiny, eps, CORE_PASS, gout, gs0, gs1, gwi, gwo))
+PAR(iso_small_fwd, (int P, const T *wi, const T *wo, T tiny, T eps, T *out), (P, wi, wo, tiny, eps, out))
+PAR(iso_small_bwd, (int P, const T *wi, const T *wo, T tiny, T eps, const T *gout, int64_t gs0, int64_t gs1, T *gwi,
+                    T *gwo),
+    (P, wi, wo, tiny, eps, gout, gs0, gs1, gwi, gwo))
 PAR(hsh_remap_fwd, (const T *d, T tiny, T eps, T *dp, uint8_t *valid), (d, tiny, eps, dp, valid))
 PAR(hsh_remap_bwd, (const T *d, T tiny, T eps, const T *gdp, T *gd), (d, tiny, eps, gdp, gd))
 PAR(pair_fwd, (const T *Am, const T *Bm, int H, int Q, const int32_t *pj, const int32_t *pk, const T *pc, T *out),
