@@ -2,7 +2,9 @@
 
 The kernels in ``kernels.c`` (bodies in ``kernels_impl.h``) evaluate the HSH and the isotropic
 Helmholtz basis (forward and backward) row by row, in blocks of 64 rows that stay in the L1 cache,
-the pair products of the anisotropic basis, and the direction map of the sphericart HSH path. They
+the pair products of the anisotropic basis, and the direction map of the sphericart HSH path; at
+P = 1-3 the isotropic basis runs on straight-line kernels that ``generate.py`` writes into
+``kernels_iso_small.h`` from the same tables (committed; a test checks it is current). They
 need no Python or torch headers: the first call compiles them with the system C compiler (``$CC``,
 else ``cc``; a few seconds) into ``$TORCH_HSH_CACHE`` (default ``~/.cache/torch_hsh``), keyed by a
 hash of the source, the compiler and the machine, and later calls load the cached library.
