@@ -68,6 +68,7 @@ def main():
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--cast-shadows", type=int, default=0)
+    ap.add_argument("--interreflections", type=int, default=0)
     ap.add_argument("--flattened-starts", action="store_true")
     ap.add_argument("--basis-ridge", type=float, default=None)
     ap.add_argument("--surface", choices=["plain", "shadows"], default=None,
@@ -117,6 +118,8 @@ def main():
         kw["order"] = args.order
     if args.cast_shadows:
         kw["cast_shadows"] = args.cast_shadows
+    if args.interreflections:
+        kw["interreflections"] = args.interreflections
     if args.flattened_starts:
         kw["calibration_starts"] = ("lambertian", "independent", "flattened")
     if args.basis_ridge is not None:

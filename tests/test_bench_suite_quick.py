@@ -34,12 +34,15 @@ def test_bench_suite_quick(tmp_path, monkeypatch):
     for name, s in scenes.items():
         assert s["pixels"] <= 400 and s["lights"] in (8, 20)
         st = s["stages"]
-        assert st["+interreflection"] is None
-        for label in ("per-pixel", "per-pixel + cast_shadows=1"):
+        for label in ("per-pixel", "per-pixel + cast_shadows=1", "+interreflection"):
             (run,) = st[label]["runs"]
             assert 0 < run["mean"] < 45 and run["time_s"] > 0, (name, label, run)
             m = re.search(rf"^  {name} {re.escape(label)} seed 0: mean {NUM} median {NUM} time {NUM} s", r.stdout, re.M)
             assert m and float(m.group(1)) == pytest.approx(run["mean"], abs=0.006), r.stdout
+        (run,) = st["+interreflection"]["runs"]
+        assert 0 <= run["bounce_fraction"] < 0.5 and run["bounce_time_s"] >= 0
+        assert re.search(rf"^  {name} \+interreflection seed 0: .* \(bounce {NUM} % of the light, {NUM} s\)$", r.stdout,
+                         re.M), r.stdout
         start = st["per-pixel"]["runs"][0]["mean"]
         for label in ("+surface", "+surface +shadows"):
             (run,) = st[label]["runs"]
@@ -53,8 +56,10 @@ def test_bench_suite_quick(tmp_path, monkeypatch):
             assert m and float(m.group(6)) == pytest.approx(run["forced_mean"], abs=0.006), r.stdout
             assert (m.group(7) == "kept") == run["kept"]
         assert re.search(rf"^{name}: LS {NUM} \| per-pixel {NUM} \(spread 0.00, .*\| \+surface {NUM} \(spread 0.00, "
-                         rf".*, forced {NUM}, kept [01]/1\) \| .* \| \+interreflection n/a$", r.stdout, re.M), r.stdout
-        assert re.search(rf"^\| {name} \| \w+ \| [\d,]+ x \d+ \| {NUM} \| .* \| [01]/1 \| n/a \|$", r.stdout, re.M)
+                         rf".*, forced {NUM}, kept [01]/1\) \| .* \| \+interreflection {NUM} \(spread 0.00, {NUM} s\)$", r.stdout,
+                         re.M), r.stdout
+        assert re.search(rf"^\| {name} \| \w+ \| [\d,]+ x \d+ \| {NUM} \| .* \| [01]/1 \| {NUM} \(0.00\) \| {NUM} s \|$",
+                         r.stdout, re.M), r.stdout
     if has_mitsuba:
         assert scenes["dome_plastic"]["stages"]["per-pixel"]["mean"] < 10  # matte dome: a small error
     # printed as it goes: the first solve's line came well before the last scene was done

@@ -7,6 +7,8 @@
   :class:`Settings` (each with its default, check and doc).
 * :func:`refine_surface` — the whole-surface stage after the solve: one depth map, the shared BRDFs and
   the shadows it casts (``solve_hsh(..., refine_surface=True)``).
+* :func:`one_bounce` — one bounce of interreflection between the pixels of a surface, under every light
+  (``solve_hsh(..., interreflections=1)`` removes it from the images and solves again).
 * :func:`holdout_evaluation` — fit on a subset of the lights, relighting error on the rest.
 * :func:`angular_error` — per-pixel angular error in degrees.
 
@@ -15,7 +17,8 @@ The HSH solver is a pipeline of stages, one module each (see :mod:`torch_hsh.ps.
 :mod:`~torch_hsh.ps.calibration` → :mod:`~torch_hsh.ps.refinement` →
 :mod:`~torch_hsh.ps.coefficients` → :mod:`~torch_hsh.ps.result`; the forward model is in
 :mod:`~torch_hsh.ps.design` and the numerical kernels in :mod:`~torch_hsh.ps.optim`. Above the
-pipeline: the cast-shadow loop (:mod:`~torch_hsh.ps.shadows`) and the held-out-light evaluation
+pipeline: the cast-shadow loop (:mod:`~torch_hsh.ps.shadows`), the interreflection loop
+(:mod:`~torch_hsh.ps.interreflections`) and the held-out-light evaluation
 (:mod:`~torch_hsh.ps.evaluation`).
 
 Inputs everywhere: ``images (L, H, W, C)`` or ``(L, P, C)``, ``lights (L, 3)`` in the DiLiGenT frame
@@ -27,6 +30,7 @@ Example:
 """
 from ._geometry import angular_error
 from .evaluation import holdout_evaluation
+from .interreflections import one_bounce
 from .lambertian import LambertianResult, lambertian_ls, robust_lambertian, trimmed_weights
 from .observations import observation_weights
 from .pipeline import solve_hsh
@@ -47,6 +51,7 @@ __all__ = [
     "holdout_evaluation",
     "lambertian_ls",
     "observation_weights",
+    "one_bounce",
     "refine_surface",
     "robust_lambertian",
     "solve_hsh",

@@ -35,6 +35,10 @@ stage  module                      returns             what it does
 6      :mod:`.result`              ``HSHResult``       maps, albedo, relighting, holdout evaluation
 =====  ==========================  ==================  =====================================
 
+Around the stages, all opt-in: the cast-shadow loop (:mod:`.shadows`), the removal of one
+bounce of interreflection (:mod:`.interreflections`) and the whole-surface stage
+(:mod:`.whole_surface`), in that order.
+
 The forward model lives in :mod:`.design`, the numerical kernels (LM, IRLS,
 small solves) in :mod:`.optim`, the validated options in :mod:`.settings`.
 Memory is bounded by ``O(chunk_size * L * K)`` in stages 4 and 5.
@@ -42,6 +46,7 @@ Memory is bounded by ``O(chunk_size * L * K)`` in stages 4 and 5.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Dict, Optional
 
@@ -57,6 +62,7 @@ from .materials import select_materials
 from .refinement import refine
 from .result import HSHResult, confidence, directional_albedo_view
 from .settings import AUTO, Settings, option_docs
+from .interreflections import interreflection_loop
 from .shadows import shadow_loop
 from .whole_surface import refine_surface
 
@@ -137,8 +143,11 @@ def solve_hsh(
         (torch.Size([64, 64, 3]), torch.Size([64, 64, 3, 20]))
     """
     cfg = Settings(**overrides) if settings is None else dataclasses.replace(settings, **overrides)
-    res = shadow_loop(run_stages, images, lights, intensities, mask, cfg) if cfg.cast_shadows else \
-        run_stages(images, lights, intensities, mask, cfg)
+    solve = functools.partial(shadow_loop, run_stages) if cfg.cast_shadows else run_stages
+    if cfg.interreflections:  # the later stages see the images without the bounce
+        res, images, intensities = interreflection_loop(solve, images, lights, intensities, mask, cfg)
+    else:
+        res = solve(images, lights, intensities, mask, cfg)
     if cfg.refine_surface:
         res = refine_surface(res, images, lights, intensities, settings=cfg)
     return res

@@ -147,6 +147,18 @@ def _check_cast_shadows(v, s):
     return v
 
 
+def _check_interreflections(v, s):
+    if isinstance(v, bool) or int(v) != v or v < 0:
+        raise ValueError(f"`interreflections` must be an integer >= 0 (rounds of the loop), got {v!r}")
+    return int(v)
+
+
+def _check_interreflection_radius(v, s):
+    if isinstance(v, bool) or int(v) != v or v < 2:
+        raise ValueError(f"`interreflection_radius` must be an integer >= 2 (pixels), got {v!r}")
+    return int(v)
+
+
 def _check_refine_surface(v, s):
     if v is True:
         return SURFACE_ROUNDS
@@ -343,6 +355,16 @@ class Settings:
         needs ``(L, H, W, C)`` images).""", _check_cast_shadows,
         cli={"flag": "--cast-shadows", "type": ("int", 0, 5),
              "help": "rounds of the cast-shadow loop of the HSH solver (default 0: off; see torch_hsh.ps.shadows)"})
+    interreflections: int = _option(0, """rounds of one-bounce interreflection removal (default 0: off): the
+        solve's surface gives every pixel the light its neighbours within
+        ``interreflection_radius`` pixels send it, once reflected; that is
+        subtracted from the images and the object solved again (see
+        :mod:`torch_hsh.ps.interreflections`; needs ``(L, H, W, C)`` images).""", _check_interreflections,
+        cli={"flag": "--interreflections", "type": ("int", 0, 3),
+             "help": "rounds of one-bounce interreflection removal before a fresh solve (default 0: off; see "
+                     "torch_hsh.ps.interreflections)"})
+    interreflection_radius: int = _option(16, "pixels: the disc of neighbours that light a pixel in that loop.",
+                                          _check_interreflection_radius)
     shadow_bias: float = _option(0.25, """height in pixels an occluder must rise above a light ray
         to cast a shadow in that loop (depth-noise margin).""", _check_shadow_bias)
     refine_surface: int = _option(0, """rounds of the whole-surface stage after the solve (default 0: off;
