@@ -187,6 +187,21 @@ def test_generated_low_order_kernels_match_the_general_kernel(order, monkeypatch
     assert all(g <= 2.0 * e + 1e-7 for g, e in zip(gen_errs, errs)), (gen_errs, errs)
 
 
+def test_forward_mode_ad_is_not_silently_dropped():
+    """Without gradients recorded the kernels skip ``autograd.Function``; inside a forward-AD level they may not, so a
+    dual input gets a derivative or an error, never a silent plain tensor."""
+    import torch.autograd.forward_ad as fwAD
+
+    a, b = _dirs(8, 30, special=False), _dirs(8, 31, special=False)
+    with fwAD.dual_level():
+        x = fwAD.make_dual(a, torch.ones_like(a))
+        try:
+            y = torch_hsh.helmholtz_isotropic(x, b, 2)
+        except (NotImplementedError, RuntimeError):
+            return
+        assert fwAD.unpack_dual(y).tangent is not None
+
+
 def test_generated_kernel_file_is_up_to_date():
     """``kernels_iso_small.h`` is what ``python -m torch_hsh._native.generate`` writes from today's tables."""
     from torch_hsh._native import generate

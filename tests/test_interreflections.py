@@ -79,6 +79,10 @@ def test_stride_approximates_the_full_sum_and_bad_arguments_are_named():
         one_bounce(img[0], n, z, m, alb)
     with pytest.raises(ValueError, match="`stride`"):
         one_bounce(img, n, z, m, alb, radius=4, stride=5)
+    with pytest.raises(ValueError, match="`light_chunk`"):
+        one_bounce(img, n, z, m, alb, light_chunk=0)
+    with pytest.raises(ValueError, match="`radius`"):
+        one_bounce(img, n, z, m, alb, radius=65)
     with pytest.raises(ValueError, match="`interreflections`"):
         ps.Settings(interreflections=-1)
     with pytest.raises(ValueError, match="`interreflection_radius`"):
@@ -118,3 +122,40 @@ def test_the_loop_removes_a_bounce_that_was_added():
 
     assert err(loop, base.normals) < 0.5 * err(plain, base.normals)
     assert err(loop, n) < err(plain, n)
+
+
+def test_missing_observations_emit_nothing_and_integer_images_work():
+    S = 16
+    z, n, _ = _surface(S, lambda x, y: 0.05 * ((x - 7.5) ** 2 + (y + 7.5) ** 2),
+                       lambda x, y: (0.1 * (x - 7.5), 0.1 * (y + 7.5)))
+    m = torch.ones(S, S, dtype=torch.bool)
+    img = torch.ones(2, S, S, 1, dtype=F64)
+    ref = one_bounce(img, n, z, m, torch.ones(S, S, 1, dtype=F64), radius=6)
+    img[0, 8, 8, 0] = float("nan")
+    img[1, 3, 3, 0] = float("inf")
+    out = one_bounce(img, n, z, m, torch.ones(S, S, 1, dtype=F64), radius=6)
+    assert torch.isfinite(out).all()
+    assert float((out - ref).max()) <= 0 and float((out - ref).min()) < 0  # the missing pixels add nothing
+    half = one_bounce(img.half(), n, z, m, torch.ones(S, S, 1, dtype=F64), radius=6)
+    assert half.dtype == torch.float32
+    torch.testing.assert_close(half.double(), out, rtol=2e-3, atol=1e-6)
+    u8 = one_bounce(torch.full((2, S, S, 1), 200, dtype=torch.uint8), n, z, m, torch.ones(S, S, 1), radius=6)
+    torch.testing.assert_close(u8.double(), 200 * ref, rtol=1e-5, atol=1e-6)
+
+
+def test_the_loop_keeps_missing_and_saturated_observations_and_the_units():
+    """The loop corrects the images in their own units and leaves the observations the solver drops as they were."""
+    from torch_hsh.ps.interreflections import interreflection_loop
+    from torch_hsh.ps.pipeline import run_stages
+
+    s = scenes.demo_scene(24, n_lights=16, seed=0, dtype=torch.float32)
+    img = s["images"].clone()
+    img[0, 12, 12, 0] = float("nan")
+    img[1, 10, 10, :] = 0.9  # a saturation plateau
+    cfg = ps.Settings(interreflections=1, interreflection_radius=6, saturation=0.9, seed=0)
+    res, seen, inten = interreflection_loop(run_stages, img, s["lights"], s["intensities"], s["mask"], cfg)
+    assert inten is s["intensities"] and seen.dtype == torch.float32
+    assert torch.isnan(seen[0, 12, 12, 0]) and bool((seen[1, 10, 10] == 0.9).all())
+    fine = torch.isfinite(img) & (img < 0.891)
+    assert bool((seen[fine] <= img[fine]).all()) and float((img - seen)[fine].max()) > 0
+    assert res.info["interreflection_fraction"] > 0 and torch.isfinite(res.normals).all()

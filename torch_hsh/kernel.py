@@ -879,7 +879,10 @@ def _iso_dirs_native(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Te
 
 
 def _needs_grad(*xs: torch.Tensor) -> bool:
-    """Whether autograd would record an operation on ``xs`` (else a kernel skips ``Function.apply``)."""
+    """Whether autograd would record an operation on ``xs`` (else a kernel skips ``Function.apply``); always
+    true inside a forward-mode AD level, where ``Function.apply`` says that it has no forward derivative."""
+    if getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0:
+        return True
     return torch.is_grad_enabled() and any(x.requires_grad for x in xs)
 
 

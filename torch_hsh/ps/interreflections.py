@@ -49,7 +49,10 @@ from .settings import Settings
 if TYPE_CHECKING:  # pragma: no cover
     from .result import HSHResult
 
-__all__ = ["INTEGRATION_ITERATIONS", "one_bounce", "interreflection_loop"]
+__all__ = ["INTEGRATION_ITERATIONS", "MAX_RADIUS", "one_bounce", "interreflection_loop"]
+
+#: Largest ``radius`` of :func:`one_bounce` (the work grows as its square).
+MAX_RADIUS = 64
 
 #: Re-weightings of the bilateral integration that gives the loop its surface (where the result has no depth).
 INTEGRATION_ITERATIONS = 100
@@ -77,11 +80,15 @@ def one_bounce(
         albedo: ``(H, W, C)`` directional albedo of the receiving pixels.
         radius: pixels; the disc of emitters around every receiver.
         stride: every ``stride``-th row and column of that disc (each standing for ``stride**2`` pixels).
-        light_chunk: lights per pass (memory: about ``3 * light_chunk * H * W * C`` values).
+        light_chunk: lights per pass (memory: about ``3 * light_chunk * H * W * C`` values besides the
+            output; the form factors are recomputed per pass, one ``(H, W)`` map at a time).
+
+    Non-finite image values (missing observations) emit nothing. Integer and half-precision images are
+    computed in float32.
 
     Returns:
         ``(L, H, W, C)`` the estimated one-bounce radiance toward the camera, zero outside the mask,
-        in the images' dtype.
+        in float32 or float64 (the images' dtype where it is one of these).
 
     Example:
         >>> H = W = 8
@@ -98,42 +105,47 @@ def one_bounce(
         if tuple(t.shape) != shape:
             raise ValueError(f"`{name}` must have shape {shape} to match `images` {tuple(images.shape)}, "
                              f"got {tuple(t.shape)}")
-    if isinstance(radius, bool) or int(radius) != radius or radius < 1:
-        raise ValueError(f"`radius` must be an integer >= 1, got {radius!r}")
+    if isinstance(radius, bool) or int(radius) != radius or not 1 <= radius <= MAX_RADIUS:
+        raise ValueError(f"`radius` must be an integer in [1, {MAX_RADIUS}], got {radius!r}")
     if isinstance(stride, bool) or int(stride) != stride or not 1 <= stride <= radius:
         raise ValueError(f"`stride` must be an integer in [1, radius], got {stride!r}")
-    dev, dt = images.device, images.dtype
+    if isinstance(light_chunk, bool) or int(light_chunk) != light_chunk or light_chunk < 1:
+        raise ValueError(f"`light_chunk` must be an integer >= 1, got {light_chunk!r}")
+    dev = images.device
+    dt = images.dtype if images.dtype in (torch.float32, torch.float64) else torch.float32  # ints, half: float32
     m = mask.to(dev).bool() & torch.isfinite(depth.to(dev))
-    z = torch.where(m, depth.to(dev, dt), torch.zeros((), device=dev, dtype=dt))
-    n = torch.where(m[..., None], normals.to(dev, dt), torch.zeros((), device=dev, dtype=dt))
+    zero = torch.zeros((), device=dev, dtype=dt)
+    z = torch.where(m, depth.to(dev, dt), zero)
+    n = torch.where(m[..., None], normals.to(dev, dt), zero)
     area = (stride * stride) / n[..., 2].clamp_min(0.2) * m
-    R = int(radius)
+    R, s = int(radius), int(stride)
     pad = (R, R, R, R)
     zp = torch.nn.functional.pad(z, pad)
     np_ = torch.nn.functional.pad(n.permute(2, 0, 1), pad)  # (3, H + 2R, W + 2R)
     ap = torch.nn.functional.pad(area, pad)
-    offsets = [(dy, dx) for dy in range(-R, R + 1, stride) for dx in range(-R, R + 1, stride)
-               if (dy or dx) and dy * dy + dx * dx <= R * R]
-    # form factors of every offset (geometry only, shared by all lights)
-    factors = []
-    for dy, dx in offsets:
+    grid = range(-(R // s) * s, R + 1, s)  # symmetric about the receiver
+    offsets = [(dy, dx) for dy in grid for dx in grid if (dy or dx) and dy * dy + dx * dx <= R * R]
+
+    def factor(dy: int, dx: int) -> torch.Tensor:
+        """cos_p cos_q dA_q / (pi r^2) of every receiver p and its emitter q = p + (dy, dx) (rows, columns)."""
         sl = (slice(R + dy, R + dy + H), slice(R + dx, R + dx + W))
         dz = zp[sl] - z
-        # d = (dx, -dy, dz): image rows grow downward, y grows upward
+        # d = X_q - X_p = (dx, -dy, dz): image rows grow downward, y grows upward
         dot_p = n[..., 0] * dx - n[..., 1] * dy + n[..., 2] * dz
         dot_q = -(np_[0][sl] * dx - np_[1][sl] * dy + np_[2][sl] * dz)
         r2 = dz * dz + float(dx * dx + dy * dy)
-        f = dot_p.clamp_min(0) * dot_q.clamp_min(0) * ap[sl] / (math.pi * r2 * r2)
-        factors.append(f * m)
-    out = torch.zeros_like(images)
+        return dot_p.clamp_min(0) * dot_q.clamp_min(0) * ap[sl] / (math.pi * r2 * r2) * m
+
+    out = torch.zeros(images.shape, device=dev, dtype=dt)
     alb = albedo.to(dev, dt)
-    for l0 in range(0, L, light_chunk):
-        img = images[l0:l0 + light_chunk].to(dt) * m[None, ..., None]
+    for l0 in range(0, L, light_chunk):  # memory: the chunk's padded source and sum, one factor map at a time
+        img = images[l0:l0 + light_chunk].to(dt)
+        img = torch.where(m[None, ..., None] & torch.isfinite(img), img, zero)  # missing observations emit nothing
         k = img.shape[0]
         src = torch.nn.functional.pad(img.permute(1, 2, 0, 3).reshape(H, W, k * C).permute(2, 0, 1), pad)
         acc = torch.zeros((k * C, H, W), device=dev, dtype=dt)
-        for (dy, dx), f in zip(offsets, factors):
-            acc.addcmul_(src[:, R + dy:R + dy + H, R + dx:R + dx + W], f)
+        for dy, dx in offsets:
+            acc.addcmul_(src[:, R + dy:R + dy + H, R + dx:R + dx + W], factor(dy, dx))
         out[l0:l0 + k] = acc.reshape(k, C, H, W).permute(0, 2, 3, 1) * alb
     return out
 
@@ -143,20 +155,31 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     """``cfg.interreflections`` rounds of: solve, estimate one bounce from the solve's surface, subtract it.
 
     ``solve(images, lights, intensities, mask, cfg)`` runs the solver (the cast-shadow loop or the
-    stages). Needs ``(L, H, W, C)`` images. Returns ``(result, images, intensities)``: the last solve
-    and the images it saw (at unit intensity, so ``intensities`` is then ``None``), for a later stage.
-    The result's ``info`` gains ``interreflection_rounds``, ``interreflection_fraction`` (the removed
-    bounce over the images' sum inside the mask, last round) and ``interreflection_time_s``.
+    stages). Needs ``(L, H, W, C)`` images. The bounce is subtracted in the images' own units (times
+    the light intensities), from the valid observations only: a missing (non-finite or negative) or
+    saturated observation (at or above 0.99 of ``cfg.saturation`` or of the level the first solve
+    detected) stays as it was, so the re-solve drops the same ones. Integer and half-precision images
+    are corrected in float32. Returns ``(result, images, intensities)``: the last solve and the images
+    it saw, for a later stage. The result's ``info`` gains ``interreflection_rounds``,
+    ``interreflection_fraction`` (the removed bounce over the images' sum inside the mask, last round)
+    and ``interreflection_time_s``.
     """
     from ..surface import integrate_normals
+    from ..render import _intensities
 
     if images.dim() != 4:
         raise ValueError(f"`interreflections` needs images of shape (L, H, W, C), got {tuple(images.shape)}")
     res = solve(images, lights, intensities, mask, cfg)
-    if intensities is not None:  # the bounce is computed at unit light intensity
-        inten = torch.as_tensor(intensities, dtype=images.dtype, device=images.device)
-        inten = inten.reshape(-1, 1, 1, inten.shape[-1] if inten.dim() == 2 else 1)
-        images, intensities = images / inten, None
+    dt = images.dtype if images.dtype in (torch.float32, torch.float64) else torch.float32
+    L, C = images.shape[0], images.shape[-1]
+    e = _intensities(intensities, L, C, torch.empty(0, dtype=dt, device=images.device))
+    e = e.to(images.device, dt).reshape(L, 1, 1, C)
+    raw = images.to(dt)
+    keep = ~torch.isfinite(raw) | (raw < 0)  # missing observations: not corrected
+    level = cfg.saturation if cfg.saturation is not None else res.info.get("saturation_level")
+    if level is not None:
+        keep |= raw >= 0.99 * float(level)
+    unit = raw / e  # the emitted radiance at unit light intensity
     seen = images
     t_total, frac = 0.0, 0.0
     for _ in range(int(cfg.interreflections)):
@@ -166,13 +189,14 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
         if depth is None:
             depth = integrate_normals(res.normals.detach().to(torch.float64).cpu(), m.cpu(), method="bilateral",
                                       iterations=INTEGRATION_ITERATIONS)
-        bounce = one_bounce(images, res.normals.detach(), depth, m, res.albedo.detach(),
+        bounce = one_bounce(unit, res.normals.detach(), depth, m, res.albedo.detach(),
                             radius=cfg.interreflection_radius)
-        seen = (images - bounce).clamp_min(0)
-        frac = float(bounce[:, m].sum() / images[:, m].sum().clamp_min(1e-30))
+        seen = torch.where(keep, raw, (raw - bounce * e).clamp_min(0))
+        ok = m[None] & torch.isfinite(unit).all(-1)
+        frac = float(bounce[ok].sum() / unit[ok].sum().clamp_min(1e-30))
         del bounce
         t_total += time.perf_counter() - t0
-        kw: dict = dict(interreflections=0, init=res.normals.to(images.dtype))
+        kw: dict = dict(interreflections=0, init=res.normals.to(dt))
         if getattr(res, "basis_brdfs", None) is not None:
             # keep the first solve's basis BRDFs and robust scale (as the cast-shadow loop does): a fresh
             # calibration lands in another basin on some seeds, which moved harvest by -0.4 to +2.5 deg
@@ -180,7 +204,7 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
             kw.update(basis=res.basis_brdfs, robust_scale=float(res.info["robust_scale"]),
                       materials=int(res.basis_brdfs.shape[0]))
         first_info = dict(res.info)
-        res = solve(seen, lights, None, mask, dataclasses.replace(cfg, **kw))
+        res = solve(seen, lights, intensities, mask, dataclasses.replace(cfg, **kw))
         for k, v in first_info.items():  # the re-solve reused the first calibration: report that one
             if k.startswith(CALIBRATION_INFO):
                 res.info[k] = v

@@ -154,8 +154,8 @@ def _check_interreflections(v, s):
 
 
 def _check_interreflection_radius(v, s):
-    if isinstance(v, bool) or int(v) != v or v < 2:
-        raise ValueError(f"`interreflection_radius` must be an integer >= 2 (pixels), got {v!r}")
+    if isinstance(v, bool) or int(v) != v or not 2 <= v <= 64:
+        raise ValueError(f"`interreflection_radius` must be an integer in [2, 64] (pixels), got {v!r}")
     return int(v)
 
 
