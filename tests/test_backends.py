@@ -161,7 +161,7 @@ def test_openmp_team_and_thread_pool_agree_bitwise(monkeypatch):
 @pytest.mark.skipif(not HAS_NATIVE, reason="needs the C kernels")
 @pytest.mark.parametrize("order", sorted(basis._ISO_SMALL_ORDERS))
 def test_generated_low_order_kernels_match_the_general_kernel(order, monkeypatch):
-    """The straight-line isotropic kernels (``_native/generate.py``) against the general C kernel that takes
+    """The straight-line isotropic kernels (``tools/generate_iso_kernels.py``) against the general C kernel that takes
     the same tables at run time: float64 values and gradients to rounding, on the special points too, and
     float32 no further from float64 than the general kernel's float32."""
     a, b = _dirs(3000, 20), _dirs(3000, 21)
@@ -203,10 +203,15 @@ def test_forward_mode_ad_is_not_silently_dropped():
 
 
 def test_generated_kernel_file_is_up_to_date():
-    """``kernels_iso_small.h`` is what ``python -m torch_hsh._native.generate`` writes from today's tables."""
-    from torch_hsh._native import generate
+    """``kernels_iso_small.h`` is what ``python tools/generate_iso_kernels.py`` writes from today's tables."""
+    import importlib.util
+    from pathlib import Path
 
-    assert generate.TARGET.read_text() == generate.source(), "run: python -m torch_hsh._native.generate"
+    path = Path(__file__).resolve().parent.parent / "tools" / "generate_iso_kernels.py"
+    spec = importlib.util.spec_from_file_location("generate_iso_kernels", path)
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    assert gen.TARGET.read_text() == gen.source(), "run: python tools/generate_iso_kernels.py"
 
 
 def test_high_order_and_empty_and_leading_shapes():

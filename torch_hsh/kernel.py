@@ -68,7 +68,6 @@ from typing import Dict, Optional, Tuple
 import torch
 
 from . import _native
-from ._native import generate as _native_generate
 from ._checks import (
     MAX_ANISOTROPIC_ORDER,
     broadcast_shapes,
@@ -847,8 +846,8 @@ class _IsoCore(torch.autograd.Function):
         return tuple(grads)
 
 
-#: Orders at which the fused isotropic kernel is generated straight-line code (``_native/generate.py``).
-_ISO_SMALL_ORDERS = frozenset(_native_generate.ORDERS)
+#: Orders at which the fused isotropic kernel is generated straight-line code (tools/generate_iso_kernels.py).
+_ISO_SMALL_ORDERS = frozenset(_native.ISO_SMALL_ORDERS)
 
 
 def _iso_geom_torch(wi: torch.Tensor, wo: torch.Tensor):
@@ -867,7 +866,7 @@ def _iso_dirs_native(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Te
     K, tab = _iso_core_args(order, dt)
     out = wi.new_empty((n, K))
     lib, sfx = _native.library(), _suffix(dt)
-    if order in _ISO_SMALL_ORDERS:  # straight-line code with the tables built in (generate.py)
+    if order in _ISO_SMALL_ORDERS:  # straight-line code with the tables built in (kernels_iso_small.h)
         fn, tab = getattr(lib, "iso_small_fwd_" + sfx), ()
         head: tuple = (order,)
     else:
@@ -880,9 +879,10 @@ def _iso_dirs_native(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Te
 
 def _needs_grad(*xs: torch.Tensor) -> bool:
     """Whether autograd would record an operation on ``xs`` (else a kernel skips ``Function.apply``); always
-    true inside a forward-mode AD level, where ``Function.apply`` says that it has no forward derivative."""
-    if getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0:
-        return True
+    true inside a forward-mode AD level, where ``Function.apply`` says that it has no forward derivative, and
+    under ``torch.jit.trace``."""
+    if getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0 or torch.jit.is_tracing():
+        return True  # (a trace records Function.apply; a bare ctypes call would leave an empty tensor in it)
     return torch.is_grad_enabled() and any(x.requires_grad for x in xs)
 
 

@@ -3,8 +3,9 @@
 The kernels in ``kernels.c`` (bodies in ``kernels_impl.h``) evaluate the HSH and the isotropic
 Helmholtz basis (forward and backward) row by row, in blocks of 64 rows that stay in the L1 cache,
 the pair products of the anisotropic basis, and the direction map of the sphericart HSH path; at
-P = 1-3 the isotropic basis runs on straight-line kernels that ``generate.py`` writes into
-``kernels_iso_small.h`` from the same tables (committed; a test checks it is current). They
+P = 1-3 (:data:`ISO_SMALL_ORDERS`) the isotropic basis runs on straight-line kernels that
+``tools/generate_iso_kernels.py`` writes into ``kernels_iso_small.h`` from the same tables (committed;
+a test checks it is current). They
 need no Python or torch headers: the first call compiles them with the system C compiler (``$CC``,
 else ``cc``; a few seconds) into ``$TORCH_HSH_CACHE`` (default ``~/.cache/torch_hsh``), keyed by a
 hash of the source, the compiler and the machine, and later calls load the cached library.
@@ -43,6 +44,8 @@ import torch
 _SRC = Path(__file__).with_name("kernels.c")
 _SOURCES = (_SRC, Path(__file__).with_name("kernels_impl.h"), Path(__file__).with_name("kernels_iso_small.h"))
 _BLOCK = 64  # rows per block in kernels.c (BS)
+#: Orders of the isotropic basis with a generated straight-line kernel (kernels_iso_small.h).
+ISO_SMALL_ORDERS = (1, 2, 3)
 _MIN_ROWS_PER_THREAD = 2048
 _CHUNKS_PER_THREAD = 4  # row ranges per thread (taken dynamically, see _run_chunks)
 
