@@ -253,6 +253,27 @@ def test_noise_estimate_ignores_object_pixels_left_outside_the_mask():
         assert 0.7 * sigma < info["noise_sigma"] < 1.4 * sigma, info["noise_sigma"]
 
 
+def test_a_lit_background_is_reported_not_silently_used_as_noise():
+    """A rendering lit everywhere (no dark background around the mask): the noise estimated around the mask is of
+    the order of the signal and most observations count as dark. The solver says so and names the way out;
+    ``noise_sigma=0`` or a dark background gives the same, accurate normals without a warning."""
+    import warnings
+
+    from torch_hsh.ps.observations import observe
+
+    L, S = 16, 24
+    n, l = _scene(S * S, L, 31)
+    lit = render(n, l, Lambertian(torch.full((S * S, 3), 0.7, dtype=DT))).reshape(L, S, S, 3)
+    mask = torch.zeros(S, S, dtype=torch.bool)
+    mask[4:20, 4:20] = True
+    with pytest.warns(RuntimeWarning, match="not dark.*`noise_sigma`"):
+        observe(lit, l, None, mask, ps.Settings())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        observe(lit * mask[..., None], l, None, mask, ps.Settings())
+        observe(lit, l, None, mask, ps.Settings(noise_sigma=0.0))
+
+
 def test_chunk_size_is_resolved_per_device(monkeypatch):
     from torch_hsh.ps.settings import CPU_CHUNK, DEVICE_CHUNK_RANGE, resolve_chunk
 
