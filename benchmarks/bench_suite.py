@@ -25,7 +25,8 @@ Columns (stages). Each runs in its own process (``_ps_worker.py``), once per sol
   is the refined surface's own error, ``kept`` how many seeds the safeguard accepted, and the time
   is the stage's alone.
 * ``+interreflection``: ``solve_hsh(interreflections=1)``: one bounce between pixels estimated from the
-  first solve's surface (:mod:`torch_hsh.ps.interreflections`), removed from the images, solved again;
+  first solve's surface (:mod:`torch_hsh.ps.interreflections`), removed from the images, the per-pixel
+  stages run again with the first solve's calibration;
   the time is the whole run's (both solves and the bounce).
 
 Every solve prints a line as soon as it ends (flushed); then one summary line per scene, and a
@@ -53,7 +54,7 @@ STAGES = [
     ("per-pixel + cast_shadows=1", ["--cast-shadows", 1], "solve_hsh(cast_shadows=1)"),
     ("+surface", ["--surface", "plain"], "solve_hsh, then refine_surface(surface_shadows=False)"),
     ("+surface +shadows", ["--surface", "shadows"], "solve_hsh, then refine_surface() (shadows from its depth)"),
-    ("+interreflection", ["--interreflections", 1], "solve_hsh(interreflections=1): one bounce removed, solved again"),
+    ("+interreflection", ["--interreflections", 1], "solve_hsh(interreflections=1): one bounce removed, per-pixel stages again"),
 ]
 
 #: --stages names of the columns

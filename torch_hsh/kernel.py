@@ -859,18 +859,22 @@ def _iso_geom_torch(wi: torch.Tensor, wo: torch.Tensor):
     return zi, zo, a, rho, _safe_s(zi) * _safe_s(zo), vi & vo
 
 
+def _iso_dirs_kernel(direction: str, order: int, dt: torch.dtype):
+    """``(fn, head, tables)`` of the fused isotropic kernel (``direction``: ``"fwd"`` / ``"bwd"``): the
+    kernel is called as ``fn(r0, r1, *head, wi, wo, tiny, eps, *tables, ...)``. At the orders of
+    ``_ISO_SMALL_ORDERS`` it is the straight-line code with the tables built in (kernels_iso_small.h)."""
+    lib, sfx = _native.library(), _suffix(dt)
+    if order in _ISO_SMALL_ORDERS:
+        return getattr(lib, f"iso_small_{direction}_{sfx}"), (order,), ()
+    return getattr(lib, f"iso_dirs_{direction}_{sfx}"), (), _iso_core_args(order, dt)[1]
+
+
 def _iso_dirs_native(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
     """The fused forward of :class:`_IsoDirs` (no autograd): flat ``(N, 3), (N, 3) -> (N, K)``."""
     wi_c, wo_c = wi.contiguous(), wo.contiguous()
     n, dt = wi.shape[0], wi.dtype
-    K, tab = _iso_core_args(order, dt)
-    out = wi.new_empty((n, K))
-    lib, sfx = _native.library(), _suffix(dt)
-    if order in _ISO_SMALL_ORDERS:  # straight-line code with the tables built in (kernels_iso_small.h)
-        fn, tab = getattr(lib, "iso_small_fwd_" + sfx), ()
-        head: tuple = (order,)
-    else:
-        fn, head = getattr(lib, "iso_dirs_fwd_" + sfx), ()
+    out = wi.new_empty((n, num_isotropic(order)))
+    fn, head, tab = _iso_dirs_kernel("fwd", order, dt)
     bad = _native.parallel_rows(fn, n, *head, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
                                 _horizon_eps(dt), *tab, _native.ptr(out))
     _recheck(bad, [("wi", wi), ("wo", wo)])
@@ -918,15 +922,9 @@ class _IsoDirs(torch.autograd.Function):
         n, dt = wi.shape[0], wi.dtype
         gwi = torch.empty((n, 3), dtype=dt)
         gwo = torch.empty((n, 3), dtype=dt)
-        _, tab = _iso_core_args(ctx.order, dt)
         wi_c, wo_c = wi.contiguous(), wo.contiguous()  # kept alive across the call
         g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
-        lib, sfx = _native.library(), _suffix(dt)
-        if ctx.order in _ISO_SMALL_ORDERS:
-            fn, tab = getattr(lib, "iso_small_bwd_" + sfx), ()
-            head: tuple = (ctx.order,)
-        else:
-            fn, head = getattr(lib, "iso_dirs_bwd_" + sfx), ()
+        fn, head, tab = _iso_dirs_kernel("bwd", ctx.order, dt)
         _native.parallel_rows(fn, n, *head, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
                               _horizon_eps(dt), *tab, _native.ptr(g), g.stride(0), g.stride(1),
                               _native.ptr(gwi), _native.ptr(gwo))

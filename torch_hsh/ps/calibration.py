@@ -35,10 +35,32 @@ from .observations import Observations
 from .refinement import refine_independent_chunk
 from .settings import DEFAULT_BASIS_RIDGE, Settings
 
-__all__ = ["Calibration", "calibrate", "fixed_calibration", "CALIBRATION_INFO"]
+__all__ = ["Calibration", "calibrate", "fixed_calibration", "CALIBRATION_INFO", "reuse_calibration",
+           "report_first_calibration"]
 
 #: Prefixes of the ``info`` keys that describe the calibration (stages 3a and 3) of a solve.
 CALIBRATION_INFO = ("calibration_", "materials", "basis_ridge")
+
+def reuse_calibration(res) -> dict:
+    """Options that make a re-solve keep the calibration of the solve ``res`` (an ``HSHResult``): its basis BRDFs,
+    robust scale and number of materials (shared model; ``materials="auto"`` was resolved by that solve).
+    Empty for the independent model. The loops around the stages (cast shadows, interreflections) change a
+    few observations, not the object's materials, and a fresh calibration from other start normals would
+    move the basis more than they do (docs/photometric_stereo.md)."""
+    if getattr(res, "basis_brdfs", None) is None:
+        return {}
+    return dict(basis=res.basis_brdfs, robust_scale=float(res.info["robust_scale"]),
+                materials=int(res.basis_brdfs.shape[0]))
+
+
+def report_first_calibration(res, first_info: dict) -> None:
+    """After re-solves that reused a calibration (:func:`reuse_calibration`): report the calibration of the first
+    solve (``first_info``, its ``info``) in ``res.info``, not "basis given"."""
+    for k, v in first_info.items():
+        if k.startswith(CALIBRATION_INFO):
+            res.info[k] = v
+    res.info.pop("basis_given", None)
+
 
 # Iteration budgets of the shared model (fixed, not set per dataset; see
 # docs/photometric_stereo.md for how much the results depend on them).

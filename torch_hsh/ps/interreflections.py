@@ -3,9 +3,8 @@
 Around the solve (``solve_hsh(..., interreflections=R)``, ``torch-hsh ps --interreflections``):
 
 1. solve;
-2. the surface of that solve: its ``depth`` where it has one (the whole-surface stage), else the
-   normals integrated with :func:`torch_hsh.surface.integrate_normals` (bilateral, so that the
-   depth keeps its jumps);
+2. the surface of that solve: its normals integrated with :func:`torch_hsh.surface.integrate_normals`
+   (bilateral, so that the depth keeps its jumps);
 3. :func:`one_bounce`: the light that every pixel receives from the other pixels of the object, once
    reflected, under every light;
 4. subtract it from the images and run the per-pixel stages again from the solve's normals, with its
@@ -43,7 +42,8 @@ from typing import TYPE_CHECKING, Callable, Optional, Tuple
 
 import torch
 
-from .calibration import CALIBRATION_INFO
+from .calibration import report_first_calibration, reuse_calibration
+from .settings import MAX_INTERREFLECTION_RADIUS as MAX_RADIUS
 from .settings import Settings
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -51,10 +51,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = ["INTEGRATION_ITERATIONS", "MAX_RADIUS", "one_bounce", "interreflection_loop"]
 
-#: Largest ``radius`` of :func:`one_bounce` (the work grows as its square).
-MAX_RADIUS = 64
-
-#: Re-weightings of the bilateral integration that gives the loop its surface (where the result has no depth).
+#: Re-weightings of the bilateral integration that gives the loop its surface.
 INTEGRATION_ITERATIONS = 100
 
 
@@ -164,8 +161,8 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     ``interreflection_fraction`` (the removed bounce over the images' sum inside the mask, last round)
     and ``interreflection_time_s``.
     """
-    from ..surface import integrate_normals
     from ..render import _intensities
+    from ..surface import integrate_normals
 
     if images.dim() != 4:
         raise ValueError(f"`interreflections` needs images of shape (L, H, W, C), got {tuple(images.shape)}")
@@ -185,10 +182,8 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     for _ in range(int(cfg.interreflections)):
         t0 = time.perf_counter()
         m = res.mask.to(images.device)
-        depth = getattr(res, "depth", None)
-        if depth is None:
-            depth = integrate_normals(res.normals.detach().to(torch.float64).cpu(), m.cpu(), method="bilateral",
-                                      iterations=INTEGRATION_ITERATIONS)
+        depth = integrate_normals(res.normals.detach().to(torch.float64).cpu(), m.cpu(), method="bilateral",
+                                  iterations=INTEGRATION_ITERATIONS)
         bounce = one_bounce(unit, res.normals.detach(), depth, m, res.albedo.detach(),
                             radius=cfg.interreflection_radius)
         seen = torch.where(keep, raw, (raw - bounce * e).clamp_min(0))
@@ -196,19 +191,12 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
         frac = float(bounce[ok].sum() / unit[ok].sum().clamp_min(1e-30))
         del bounce
         t_total += time.perf_counter() - t0
-        kw: dict = dict(interreflections=0, init=res.normals.to(dt))
-        if getattr(res, "basis_brdfs", None) is not None:
-            # keep the first solve's basis BRDFs and robust scale (as the cast-shadow loop does): a fresh
-            # calibration lands in another basin on some seeds, which moved harvest by -0.4 to +2.5 deg
-            # while the bounce itself is 1.5 % of the light (docs/photometric_stereo.md)
-            kw.update(basis=res.basis_brdfs, robust_scale=float(res.info["robust_scale"]),
-                      materials=int(res.basis_brdfs.shape[0]))
+        # the first solve's calibration is kept: a fresh one lands in another basin on some seeds, which moved
+        # harvest by -0.6 to +2.5 deg while the bounce is 1.5 % of its light (docs/photometric_stereo.md)
+        kw = dict(interreflections=0, init=res.normals.to(dt), **reuse_calibration(res))
         first_info = dict(res.info)
         res = solve(seen, lights, intensities, mask, dataclasses.replace(cfg, **kw))
-        for k, v in first_info.items():  # the re-solve reused the first calibration: report that one
-            if k.startswith(CALIBRATION_INFO):
-                res.info[k] = v
-        res.info.pop("basis_given", None)
+        report_first_calibration(res, first_info)
     res.info["interreflection_rounds"] = float(cfg.interreflections)
     res.info["interreflection_fraction"] = frac
     res.info["interreflection_time_s"] = t_total

@@ -56,13 +56,13 @@ from ._chunks import ROW_CHUNK, row_sum, scatter_pixels
 from .calibration import calibrate, fixed_calibration
 from .coefficients import fit_coefficients
 from .initialisation import initial_normals
+from .interreflections import interreflection_loop
 from .lambertian import _solve_flat
 from .observations import observe
 from .materials import select_materials
 from .refinement import refine
 from .result import HSHResult, confidence, directional_albedo_view
 from .settings import AUTO, Settings, option_docs
-from .interreflections import interreflection_loop
 from .shadows import shadow_loop
 from .whole_surface import refine_surface
 

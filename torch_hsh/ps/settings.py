@@ -153,9 +153,14 @@ def _check_interreflections(v, s):
     return int(v)
 
 
+#: Largest radius of the interreflection disc (``one_bounce``'s work grows as its square).
+MAX_INTERREFLECTION_RADIUS = 64
+
+
 def _check_interreflection_radius(v, s):
-    if isinstance(v, bool) or int(v) != v or not 2 <= v <= 64:
-        raise ValueError(f"`interreflection_radius` must be an integer in [2, 64] (pixels), got {v!r}")
+    if isinstance(v, bool) or int(v) != v or not 2 <= v <= MAX_INTERREFLECTION_RADIUS:
+        raise ValueError(f"`interreflection_radius` must be an integer in [2, {MAX_INTERREFLECTION_RADIUS}] "
+                         f"(pixels), got {v!r}")
     return int(v)
 
 
@@ -358,11 +363,12 @@ class Settings:
     interreflections: int = _option(0, """rounds of one-bounce interreflection removal (default 0: off): the
         solve's surface gives every pixel the light its neighbours within
         ``interreflection_radius`` pixels send it, once reflected; that is
-        subtracted from the images and the object solved again (see
-        :mod:`torch_hsh.ps.interreflections`; needs ``(L, H, W, C)`` images).""", _check_interreflections,
+        subtracted from the images and the per-pixel stages run again with
+        the solve's calibration (see :mod:`torch_hsh.ps.interreflections`;
+        needs ``(L, H, W, C)`` images).""", _check_interreflections,
         cli={"flag": "--interreflections", "type": ("int", 0, 3),
-             "help": "rounds of one-bounce interreflection removal before a fresh solve (default 0: off; see "
-                     "torch_hsh.ps.interreflections)"})
+             "help": "rounds of one-bounce interreflection removal, each followed by the per-pixel stages with the "
+                     "first solve's calibration (default 0: off; see torch_hsh.ps.interreflections)"})
     interreflection_radius: int = _option(16, "pixels: the disc of neighbours that light a pixel in that loop.",
                                           _check_interreflection_radius)
     shadow_bias: float = _option(0.25, """height in pixels an occluder must rise above a light ray

@@ -33,7 +33,7 @@ from typing import Callable
 
 import torch
 
-from .calibration import CALIBRATION_INFO
+from .calibration import report_first_calibration, reuse_calibration
 from .settings import Settings
 
 __all__ = ["CHANGE_TOLERANCE", "shadow_loop"]
@@ -79,22 +79,11 @@ def shadow_loop(solve: Callable, images: torch.Tensor, lights: torch.Tensor, int
             break
         occluded = new
         v = ~occluded if valid is None else (valid.to(images.device).bool() & ~occluded)
-        kw = dict(valid=v, init=res.normals.to(images.dtype))
-        if getattr(res, "basis_brdfs", None) is not None:
-            # keep the first solve's basis BRDFs and robust scale: the visibility changes a few
-            # observations, not the object's materials, and a fresh calibration from other start
-            # normals would move the basis more than the shadows do (docs/photometric_stereo.md)
-            # (``materials`` then follows the basis: "auto" was resolved by the first solve)
-            kw.update(basis=res.basis_brdfs, robust_scale=float(res.info["robust_scale"]),
-                      materials=int(res.basis_brdfs.shape[0]))
+        kw = dict(valid=v, init=res.normals.to(images.dtype), **reuse_calibration(res))
         res = solve(images, lights, intensities, mask, dataclasses.replace(cfg, **kw))
         done += 1
     if done:
-        # the re-solves reuse the first solve's calibration: report that calibration, not "basis given"
-        for k, v in first_info.items():
-            if k.startswith(CALIBRATION_INFO):
-                res.info[k] = v
-        res.info.pop("basis_given", None)
+        report_first_calibration(res, first_info)
     res.info["shadow_rounds"] = float(done)
     res.info["shadowed_fraction"] = int(occluded.sum()) / n_obs
     res.info["shadow_time_s"] = t_shadow
