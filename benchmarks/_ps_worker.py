@@ -131,12 +131,26 @@ def main():
     rss_loaded = _rss_mb()
     out = {"rss_import_mb": rss_import, "rss_loaded_mb": rss_loaded, "source": str(torch_hsh.__file__), "pixels": int(mask.sum()) if mask is not None else int(images[0].numel() // images.shape[-1]),
            "lights": int(images.shape[0]), "load_s": load_s, "methods": {}}
+    results = {}
+    seen = {"images": images, "intensities": inten}  # what the surface stage refines: the solve's own images
+
+    def hsh():
+        if not (args.surface and args.interreflections):
+            return ps.solve_hsh(images, lights, inten, mask, seed=args.seed, **kw)
+        # the surface stage after the interreflection loop fits the images without the bounce, as in
+        # solve_hsh(interreflections=R, refine_surface=...): keep the loop's corrected images for it
+        from torch_hsh.ps.interreflections import interreflection_loop
+        from torch_hsh.ps.pipeline import run_stages
+
+        res, seen["images"], seen["intensities"] = interreflection_loop(
+            run_stages, images, lights, inten, mask, ps.Settings(seed=args.seed, **kw))
+        return res
+
     solvers = {
         "ls": lambda: ps.lambertian_ls(images, lights, inten, mask),
         "trimmed": lambda: ps.robust_lambertian(images, lights, inten, mask),
-        "hsh": lambda: ps.solve_hsh(images, lights, inten, mask, seed=args.seed, **kw),
+        "hsh": hsh,
     }
-    results = {}
 
     def surface():
         skw = dict(surface_shadows=args.surface == "shadows", surface_safeguard=False, seed=args.seed, **kw)
@@ -144,7 +158,8 @@ def main():
             skw["refine_surface"] = args.surface_rounds
         if args.surface_iterations is not None:
             skw["surface_iterations"] = args.surface_iterations
-        return ps.refine_surface(results["hsh"], images, lights, inten, **skw)
+        skw.pop("interreflections", None)
+        return ps.refine_surface(results["hsh"], seen["images"], lights, seen["intensities"], **skw)
 
     solvers["surface"] = surface
     names = args.methods.split(",") + (["surface"] if args.surface else [])

@@ -28,6 +28,10 @@ Columns (stages). Each runs in its own process (``_ps_worker.py``), once per sol
   first solve's surface (:mod:`torch_hsh.ps.interreflections`), removed from the images, the per-pixel
   stages run again with the first solve's calibration;
   the time is the whole run's (both solves and the bounce).
+* ``+interreflection +surface +shadows``: the two together, as ``solve_hsh(interreflections=1,
+  refine_surface=True)`` runs them: the whole-surface stage refines the interreflection loop's result on
+  the images without the bounce (mean with the safeguard, ``forced``, ``kept`` as above; the time is the
+  stage's alone, the start is the loop's result).
 
 Every solve prints a line as soon as it ends (flushed); then one summary line per scene, and a
 Markdown table at the end. Errors are the mean angular error (degrees) over the mask; ``spread``
@@ -55,11 +59,14 @@ STAGES = [
     ("+surface", ["--surface", "plain"], "solve_hsh, then refine_surface(surface_shadows=False)"),
     ("+surface +shadows", ["--surface", "shadows"], "solve_hsh, then refine_surface() (shadows from its depth)"),
     ("+interreflection", ["--interreflections", 1], "solve_hsh(interreflections=1): one bounce removed, per-pixel stages again"),
+    ("+interreflection +surface +shadows", ["--interreflections", 1, "--surface", "shadows"],
+     "solve_hsh(interreflections=1), then refine_surface() on the images without the bounce"),
 ]
 
 #: --stages names of the columns
 _STAGE_KEYS = {"per-pixel": "per-pixel", "per-pixel + cast_shadows=1": "shadows", "+surface": "surface",
-               "+surface +shadows": "surface-shadows", "+interreflection": "interreflection"}
+               "+surface +shadows": "surface-shadows", "+interreflection": "interreflection",
+               "+interreflection +surface +shadows": "interreflection-surface"}
 
 
 def _render_progress(msg: str) -> None:
