@@ -49,10 +49,32 @@ from .settings import Settings
 if TYPE_CHECKING:  # pragma: no cover
     from .result import HSHResult
 
-__all__ = ["INTEGRATION_ITERATIONS", "MAX_RADIUS", "one_bounce", "interreflection_loop"]
+__all__ = ["INTEGRATION_ITERATIONS", "MAX_OCCLUSION_SAMPLES", "MAX_RADIUS", "NEAR_RADIUS", "one_bounce", "interreflection_loop"]
 
 #: Re-weightings of the bilateral integration that gives the loop its surface.
 INTEGRATION_ITERATIONS = 100
+#: Most depth samples per pair in :func:`one_bounce`'s occlusion test.
+MAX_OCCLUSION_SAMPLES = 32
+#: Pixels around a receiver within which :func:`one_bounce` samples every ``stride``-th row and column;
+#: beyond them the stride doubles with the distance.
+NEAR_RADIUS = 16
+
+
+def _disc_samples(radius: int, stride: int, near: int):
+    """``(dy, dx, weight)`` of the emitter samples around a receiver: the multiples of ``stride`` within
+    ``near`` pixels, then of ``2 * stride`` up to ``2 * near``, of ``4 * stride`` up to ``4 * near``, ...,
+    out to ``radius``; ``weight`` is the sample's cell area over ``stride**2``. Each grid is symmetric about
+    the receiver."""
+    out = []
+    step, lo, hi = stride, 0, near
+    while lo < radius:
+        hi = min(hi, radius)
+        grid = range(-(hi // step) * step, hi + 1, step)
+        w = float((step // stride) ** 2)
+        out += [(dy, dx, w) for dy in grid for dx in grid
+                if (dy or dx) and lo * lo < dy * dy + dx * dx <= hi * hi]
+        step, lo, hi = 2 * step, hi, 2 * hi
+    return out
 
 
 def one_bounce(
@@ -64,6 +86,8 @@ def one_bounce(
     *,
     radius: int = 16,
     stride: int = 2,
+    near: Optional[int] = NEAR_RADIUS,
+    occlusion: bool = False,
     light_chunk: int = 16,
 ) -> torch.Tensor:
     """One bounce of interreflection under every light (see the module docstring for the model).
@@ -76,7 +100,17 @@ def one_bounce(
         mask: ``(H, W)`` bool.
         albedo: ``(H, W, C)`` directional albedo of the receiving pixels.
         radius: pixels; the disc of emitters around every receiver.
-        stride: every ``stride``-th row and column of that disc (each standing for ``stride**2`` pixels).
+        stride: every ``stride``-th row and column of that disc (each standing for ``stride**2`` pixels),
+            within ``near`` pixels of the receiver.
+        near: pixels; beyond them the stride doubles at every doubling of the distance (``2 * stride``
+            up to ``2 * near``, ``4 * stride`` up to ``4 * near``, ...; each sample standing for its
+            stride squared), so the work grows with the logarithm of ``radius`` instead of its square.
+            The form factor falls off as ``1 / r**2`` there, and the emitters' sum is smooth. ``None``:
+            ``stride`` everywhere.
+        occlusion: test every pair for a surface between them: the depth at the pixels that the
+            segment from ``p`` to ``q`` crosses (one per step along its longer axis, at most
+            :data:`MAX_OCCLUSION_SAMPLES`) must not rise above the segment by more than half a pixel.
+            Pixels outside the mask do not occlude.
         light_chunk: lights per pass (memory: about ``3 * light_chunk * H * W * C`` values besides the
             output; the form factors are recomputed per pass, one ``(H, W)`` map at a time).
 
@@ -106,6 +140,8 @@ def one_bounce(
         raise ValueError(f"`radius` must be an integer in [1, {MAX_RADIUS}], got {radius!r}")
     if isinstance(stride, bool) or int(stride) != stride or not 1 <= stride <= radius:
         raise ValueError(f"`stride` must be an integer in [1, radius], got {stride!r}")
+    if near is not None and (isinstance(near, bool) or int(near) != near or near < 1):
+        raise ValueError(f"`near` must be None or an integer >= 1, got {near!r}")
     if isinstance(light_chunk, bool) or int(light_chunk) != light_chunk or light_chunk < 1:
         raise ValueError(f"`light_chunk` must be an integer >= 1, got {light_chunk!r}")
     dev = images.device
@@ -120,8 +156,9 @@ def one_bounce(
     zp = torch.nn.functional.pad(z, pad)
     np_ = torch.nn.functional.pad(n.permute(2, 0, 1), pad)  # (3, H + 2R, W + 2R)
     ap = torch.nn.functional.pad(area, pad)
-    grid = range(-(R // s) * s, R + 1, s)  # symmetric about the receiver
-    offsets = [(dy, dx) for dy in grid for dx in grid if (dy or dx) and dy * dy + dx * dx <= R * R]
+    offsets = _disc_samples(R, s, R if near is None else int(near))
+    # occluders: the depth inside the mask; outside it nothing occludes
+    zo = torch.nn.functional.pad(torch.where(m, z, torch.full_like(z, -torch.inf)), pad, value=-math.inf)
 
     def factor(dy: int, dx: int) -> torch.Tensor:
         """cos_p cos_q dA_q / (pi r^2) of every receiver p and its emitter q = p + (dy, dx) (rows, columns)."""
@@ -131,7 +168,15 @@ def one_bounce(
         dot_p = n[..., 0] * dx - n[..., 1] * dy + n[..., 2] * dz
         dot_q = -(np_[0][sl] * dx - np_[1][sl] * dy + np_[2][sl] * dz)
         r2 = dz * dz + float(dx * dx + dy * dy)
-        return dot_p.clamp_min(0) * dot_q.clamp_min(0) * ap[sl] / (math.pi * r2 * r2) * m
+        f = dot_p.clamp_min(0) * dot_q.clamp_min(0) * ap[sl] / (math.pi * r2 * r2) * m
+        if occlusion:  # the pixels that the segment crosses, one per row or column (its longer axis)
+            steps = max(abs(dx), abs(dy))
+            for i in sorted({round(j * steps / min(steps, MAX_OCCLUSION_SAMPLES)) for j in
+                             range(1, min(steps, MAX_OCCLUSION_SAMPLES))}):
+                oy, ox = round(i * dy / steps), round(i * dx / steps)
+                tt = i / steps  # where that pixel sits along the segment
+                f = f * (zo[R + oy:R + oy + H, R + ox:R + ox + W] <= z + tt * dz + 0.5)
+        return f
 
     out = torch.zeros(images.shape, device=dev, dtype=dt)
     alb = albedo.to(dev, dt)
@@ -141,8 +186,9 @@ def one_bounce(
         k = img.shape[0]
         src = torch.nn.functional.pad(img.permute(1, 2, 0, 3).reshape(H, W, k * C).permute(2, 0, 1), pad)
         acc = torch.zeros((k * C, H, W), device=dev, dtype=dt)
-        for dy, dx in offsets:
-            acc.addcmul_(src[:, R + dy:R + dy + H, R + dx:R + dx + W], factor(dy, dx))
+        for dy, dx, w in offsets:
+            f = factor(dy, dx)
+            acc.addcmul_(src[:, R + dy:R + dy + H, R + dx:R + dx + W], f if w == 1 else f * w)
         out[l0:l0 + k] = acc.reshape(k, C, H, W).permute(0, 2, 3, 1) * alb
     return out
 
@@ -178,7 +224,9 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
         keep |= raw >= 0.99 * float(level)
     unit = raw / e  # the emitted radiance at unit light intensity
     seen = images
-    t_total, frac = 0.0, 0.0
+    t_total, frac, rounds = 0.0, 0.0, 0
+    conf_first = conf = _mean_confidence(res)
+    conf_last, accepted = conf, True
     for _ in range(int(cfg.interreflections)):
         t0 = time.perf_counter()
         m = res.mask.to(images.device)
@@ -186,7 +234,7 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
                                   iterations=INTEGRATION_ITERATIONS)
         bounce = one_bounce(unit, res.normals.detach(), depth, m, res.albedo.detach(),
                             radius=cfg.interreflection_radius)
-        seen = torch.where(keep, raw, (raw - bounce * e).clamp_min(0))
+        corrected = torch.where(keep, raw, (raw - bounce * e).clamp_min(0))
         ok = m[None] & torch.isfinite(unit).all(-1)
         frac = float(bounce[ok].sum() / unit[ok].sum().clamp_min(1e-30))
         del bounce
@@ -195,9 +243,25 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
         # harvest by -0.6 to +2.5 deg while the bounce is 1.5 % of its light (docs/photometric_stereo.md)
         kw = dict(interreflections=0, init=res.normals.to(dt), **reuse_calibration(res))
         first_info = dict(res.info)
-        res = solve(seen, lights, intensities, mask, dataclasses.replace(cfg, **kw))
-        report_first_calibration(res, first_info)
-    res.info["interreflection_rounds"] = float(cfg.interreflections)
+        new = solve(corrected, lights, intensities, mask, dataclasses.replace(cfg, **kw))
+        report_first_calibration(new, first_info)
+        conf_last = _mean_confidence(new)
+        accepted = conf_last >= conf  # the safeguard: the corrected images must fit the model no worse
+        if not accepted and cfg.interreflection_safeguard:
+            break
+        res, seen, conf, rounds = new, corrected, conf_last, rounds + 1
+        if not accepted:
+            break
+    res.info["interreflection_rounds"] = float(rounds)
     res.info["interreflection_fraction"] = frac
     res.info["interreflection_time_s"] = t_total
+    res.info["interreflection_confidence_before"] = conf_first
+    res.info["interreflection_confidence_after"] = conf_last
+    res.info["interreflection_accepted"] = float(accepted)
     return res, seen, intensities
+
+
+def _mean_confidence(res: "HSHResult") -> float:
+    """Mean of the result's confidence over its mask: the safeguard's measure of how well the model fits."""
+    m = res.mask.to(res.confidence.device)
+    return float(res.confidence[m].mean()) if bool(m.any()) else 0.0
