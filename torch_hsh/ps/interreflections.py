@@ -8,7 +8,12 @@ Around the solve (``solve_hsh(..., interreflections=R)``, ``torch-hsh ps --inter
 3. :func:`one_bounce`: the light that every pixel receives from the other pixels of the object, once
    reflected, under every light;
 4. subtract it from the images and run the per-pixel stages again from the solve's normals, with its
-   basis BRDFs and robust scale kept (shared model; as the cast-shadow loop does).
+   basis BRDFs and robust scale kept (shared model; as the cast-shadow loop does);
+5. the safeguard (``interreflection_safeguard``, on by default): keep that solve only if its mean
+   confidence (:attr:`HSHResult.confidence`: the robust weights and the fit residuals, at the first
+   solve's robust scale) did not fall. Images that really hold a bounce fit the local BRDF model better
+   once it is removed; subtracting a bounce that is not there (a renderer without interreflections)
+   makes them fit worse. Otherwise the first solve is returned.
 
 Model of step 3 (orthographic view along ``v = +z``, pixel units, DiLiGenT frame; ``p`` receives,
 ``q`` emits). The surface point of pixel ``q`` is ``X_q = (x_q, y_q, z_q)`` with ``x`` to the right,
@@ -22,16 +27,18 @@ receiver:
 
 where ``dA_q = s^2 / max(n_q . v, 0.2)`` is the area of the surface that a cell of ``s x s`` pixels
 around ``q`` covers (``s`` = ``stride``). ``q`` runs over the masked pixels of a disc of ``radius``
-pixels around ``p``, every ``stride``-th row and column. There is no occlusion test between ``p`` and
-``q``: inside the disc a concave surface mostly sees itself. ``F`` is the point-to-area form factor.
+pixels around ``p``, every ``stride``-th row and column within ``near`` pixels and a stride that doubles
+with every doubling of the distance beyond. By default there is no occlusion test between ``p`` and
+``q``: inside a 16-pixel disc a concave surface mostly sees itself (``occlusion=True`` tests the depth
+along the segment; it matters for larger discs). ``F`` is the point-to-area form factor.
 For coplanar points both cosines vanish, so a plane receives nothing. The receiver is diffuse
 (``A_p / pi`` times the incident irradiance), which underestimates a specular receiver's bounce
 toward the camera, and the emitter is Lambertian. This is one bounce, from the observed radiance.
 
-Measured on the suite (docs/photometric_stereo.md, "Interreflections"; 5 seeds): the folded plastic
--0.81 deg, the grooved conductor -0.22, the cat -0.17, harvest -0.04, the scenes without
-interreflections +0.01 (bowl, demo) to +0.08 (the bunny), at 1.2-2.4x the time of the solve. Off
-by default.
+Measured on the suite (docs/photometric_stereo.md, "Interreflections"; 5 seeds, with the safeguard): the
+folded plastic -0.81 deg, the grooved conductor -0.22, the cat -0.17, the bumpy field -0.08, harvest -0.04;
+the bunny and the demo (renderers without interreflections) are rejected on every seed and keep their first
+solve; the bowl +0.01. It costs 1.2-2.4x the time of the solve, so it is off by default.
 """
 from __future__ import annotations
 
@@ -203,9 +210,13 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     saturated observation (at or above 0.99 of ``cfg.saturation`` or of the level the first solve
     detected) stays as it was, so the re-solve drops the same ones. Integer and half-precision images
     are corrected in float32. Returns ``(result, images, intensities)``: the last solve and the images
-    it saw, for a later stage. The result's ``info`` gains ``interreflection_rounds``,
-    ``interreflection_fraction`` (the removed bounce over the images' sum inside the mask, last round)
-    and ``interreflection_time_s``.
+    it saw, for a later stage. With ``cfg.interreflection_safeguard`` a round is kept only if the mean
+    confidence of its solve is not below that of the solve before it; the loop stops at the first round
+    that is not kept, and returns the solve and images before it. The result's ``info`` gains
+    ``interreflection_rounds`` (rounds kept), ``interreflection_fraction`` (the estimated bounce over
+    the images' sum inside the mask, last round), ``interreflection_time_s``,
+    ``interreflection_confidence_before`` (first solve) / ``_after`` (last round's solve) and
+    ``interreflection_accepted`` (1 or 0: the last round's decision, also when the safeguard is off).
     """
     from ..render import _intensities
     from ..surface import integrate_normals
