@@ -71,6 +71,7 @@ def main():
     ap.add_argument("--interreflections", type=int, default=0)
     ap.add_argument("--flattened-starts", action="store_true")
     ap.add_argument("--basis-ridge", type=float, default=None)
+    ap.add_argument("--interreflection-radius", type=int, default=None)
     ap.add_argument("--surface", choices=["plain", "shadows"], default=None,
                     help="after hsh: the whole-surface stage (refine_surface) without / with its cast shadows, "
                          "safeguard off; reported as method 'surface' (mean: what the safeguard returns, "
@@ -124,6 +125,8 @@ def main():
         kw["calibration_starts"] = ("lambertian", "independent", "flattened")
     if args.basis_ridge is not None:
         kw["basis_ridge"] = args.basis_ridge
+    if args.interreflection_radius is not None and args.interreflections:
+        kw["interreflection_radius"] = args.interreflection_radius
     if args.materials != "default":
         kw["materials"] = None if args.materials == "none" else (args.materials if args.materials == "auto" else int(args.materials))
     import torch_hsh

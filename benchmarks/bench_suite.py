@@ -108,6 +108,8 @@ def main(argv=None):
     ap.add_argument("--stages", nargs="+", default=None, choices=sorted(set(_STAGE_KEYS.values())),
                     help="run only these columns (per-pixel: solve_hsh; shadows: cast_shadows=1; surface / "
                          "surface-shadows: the whole-surface stage); default all")
+    ap.add_argument("--interreflection-radius", type=int, default=None,
+                    help="solve_hsh(interreflection_radius=...) of the interreflection columns (default: the library's)")
     ap.add_argument("--basis-ridge", type=float, default=None,
                     help="solve_hsh(basis_ridge=...) of every solve (default: the library's default)")
     ap.add_argument("--json", default=None, help="write every record to this JSON file")
@@ -132,6 +134,8 @@ def main(argv=None):
     common = ["--threads", threads] + (["--max-pixels", max_pixels] if max_pixels else [])
     if args.basis_ridge is not None:
         common += ["--basis-ridge", args.basis_ridge]
+    if args.interreflection_radius is not None:
+        common += ["--interreflection-radius", args.interreflection_radius]
     print(f"suite: {len(scenes)} scene(s), solver seeds {' '.join(map(str, seeds))}, {threads} thread(s) per solve"
           + (f", at most {max_pixels} mask px" if max_pixels else ""), flush=True)
     records = {}
@@ -163,8 +167,15 @@ def main(argv=None):
                 if "--interreflections" in extra:
                     i = h["info"]
                     run.update(bounce_fraction=i.get("interreflection_fraction"),
-                               bounce_time_s=i.get("interreflection_time_s"))
-                    more = f" (bounce {100 * run['bounce_fraction']:.2f} % of the light, {run['bounce_time_s']:.1f} s)"
+                               bounce_time_s=i.get("interreflection_time_s"),
+                               accepted=i.get("interreflection_accepted"),
+                               confidence_before=i.get("interreflection_confidence_before"),
+                               confidence_after=i.get("interreflection_confidence_after"))
+                    more = f" (bounce {100 * run['bounce_fraction']:.2f} % of the light, {run['bounce_time_s']:.1f} s"
+                    if run["accepted"] is not None:
+                        more += (f", {'kept' if run['accepted'] else 'rejected'}: confidence "
+                                 f"{run['confidence_before']:.4f} -> {run['confidence_after']:.4f}")
+                    more += ")"
                 if "--surface" in extra:
                     i = h["info"]
                     run.update(start_mean=r["methods"]["hsh"]["mean"], forced_mean=h["forced_mean"],

@@ -41,8 +41,14 @@ def test_bench_suite_quick(tmp_path, monkeypatch):
             assert m and float(m.group(1)) == pytest.approx(run["mean"], abs=0.006), r.stdout
         (run,) = st["+interreflection"]["runs"]
         assert 0 <= run["bounce_fraction"] < 0.5 and run["bounce_time_s"] >= 0
-        assert re.search(rf"^  {name} \+interreflection seed 0: .* \(bounce {NUM} % of the light, {NUM} s\)$", r.stdout,
-                         re.M), r.stdout
+        m = re.search(rf"^  {name} \+interreflection seed 0: .* \(bounce {NUM} % of the light, {NUM} s, "
+                      rf"(kept|rejected): confidence {NUM} -> {NUM}\)$", r.stdout, re.M)
+        assert m, r.stdout
+        # the loop's safeguard keeps the corrected solve only when the mean confidence did not fall
+        assert run["accepted"] == (run["confidence_after"] >= run["confidence_before"])
+        assert (m.group(3) == "kept") == bool(run["accepted"])
+        if not run["accepted"]:
+            assert run["mean"] == pytest.approx(st["per-pixel"]["runs"][0]["mean"], abs=1e-9)  # the first solve
         start = st["per-pixel"]["runs"][0]["mean"]
         for label in ("+surface", "+surface +shadows"):
             (run,) = st[label]["runs"]
@@ -56,9 +62,11 @@ def test_bench_suite_quick(tmp_path, monkeypatch):
             assert m and float(m.group(6)) == pytest.approx(run["forced_mean"], abs=0.006), r.stdout
             assert (m.group(7) == "kept") == run["kept"]
         assert re.search(rf"^{name}: LS {NUM} \| per-pixel {NUM} \(spread 0.00, .*\| \+surface {NUM} \(spread 0.00, "
-                         rf".*, forced {NUM}, kept [01]/1\) \| .* \| \+interreflection {NUM} \(spread 0.00, {NUM} s\)$", r.stdout,
+                         rf".*, forced {NUM}, kept [01]/1\) \| .* \| \+interreflection {NUM} \(spread 0.00, {NUM} s\) \| "
+                         rf"\+interreflection \+surface \+shadows {NUM} \(spread 0.00, .*, kept [01]/1\)$", r.stdout,
                          re.M), r.stdout
-        assert re.search(rf"^\| {name} \| \w+ \| [\d,]+ x \d+ \| {NUM} \| .* \| [01]/1 \| {NUM} \(0.00\) \| {NUM} s \|$",
+        assert re.search(rf"^\| {name} \| \w+ \| [\d,]+ x \d+ \| {NUM} \| .* \| [01]/1 \| {NUM} \(0.00\) \| {NUM} s \| "
+                         rf"{NUM} \(0.00\) \| {NUM} s \| {NUM} \| [01]/1 \|$",
                          r.stdout, re.M), r.stdout
     if has_mitsuba:
         assert scenes["dome_plastic"]["stages"]["per-pixel"]["mean"] < 10  # matte dome: a small error

@@ -89,6 +89,55 @@ def test_stride_approximates_the_full_sum_and_bad_arguments_are_named():
         ps.Settings(interreflection_radius=1)
 
 
+def test_the_far_field_stride_approximates_the_full_disc():
+    """Beyond ``near`` pixels the stride doubles with the distance: the estimate stays close to the sum over
+    every pixel of the disc, with fewer samples; within ``near`` it is the uniform sum, bit for bit."""
+    from torch_hsh.ps.interreflections import _disc_samples
+
+    S, R = 56, 24
+    c = (S - 1) / 2
+    z, n, _ = _surface(S, lambda x, y: 0.02 * ((x - c) ** 2 + (y + c) ** 2),
+                       lambda x, y: (0.04 * (x - c), 0.04 * (y + c)))
+    m = torch.ones(S, S, dtype=torch.bool)
+    g = torch.Generator().manual_seed(1)
+    img = 0.5 + torch.rand(2, S, S, 1, generator=g, dtype=F64)
+    alb = torch.ones(S, S, 1, dtype=F64)
+    full = one_bounce(img, n, z, m, alb, radius=R, stride=1, near=None)
+    far = one_bounce(img, n, z, m, alb, radius=R, stride=1, near=6)
+    centre = (slice(None), slice(20, 36), slice(20, 36))
+    assert float(full[centre].mean()) > 0.01
+    assert abs(float(far[centre].mean() / full[centre].mean()) - 1.0) < 0.05
+    assert len(_disc_samples(R, 1, 6)) < len(_disc_samples(R, 1, R)) / 3
+    # the samples' cells cover the disc
+    assert abs(sum(w for *_, w in _disc_samples(R, 1, 6)) / (math.pi * R * R) - 1.0) < 0.05
+    torch.testing.assert_close(one_bounce(img, n, z, m, alb, radius=6, stride=1, near=6),
+                               one_bounce(img, n, z, m, alb, radius=6, stride=1, near=None), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="`near`"):
+        one_bounce(img, n, z, m, alb, near=0)
+
+
+def test_a_wall_between_two_slopes_occludes_them():
+    """Two facing slopes (a V groove) light each other; a wall raised along the groove's floor blocks that light
+    when ``occlusion=True`` and not without it; pixels outside the mask never occlude."""
+    S = 21
+    c = (S - 1) / 2
+    z, n, _ = _surface(S, lambda x, y: 0.8 * (x - c).abs(),
+                       lambda x, y: (0.8 * torch.sign(x - c), torch.zeros_like(x)))
+    m = torch.ones(S, S, dtype=torch.bool)
+    img, alb = torch.ones(1, S, S, 1, dtype=F64), torch.ones(S, S, 1, dtype=F64)
+    kw = dict(radius=8, stride=1)
+    open_ = one_bounce(img, n, z, m, alb, **kw)
+    assert float(open_[0, 10, 7, 0]) > 1e-3  # the left slope sees the right one
+    torch.testing.assert_close(one_bounce(img, n, z, m, alb, occlusion=True, **kw), open_)  # nothing in between
+    zw = z.clone()
+    zw[:, 10] = 50.0  # a wall along the floor (its own normal is irrelevant here)
+    walled = one_bounce(img, n, zw, m, alb, occlusion=True, **kw)
+    assert float(walled[0, 10, 7, 0]) < 1e-3 * float(open_[0, 10, 7, 0])
+    m2 = m.clone()
+    m2[:, 10] = False  # the wall outside the mask: it emits nothing and occludes nothing
+    assert float(one_bounce(img, n, zw, m2, alb, occlusion=True, **kw)[0, 10, 7, 0]) > 0.5 * float(open_[0, 10, 7, 0])
+
+
 def test_the_loop_removes_a_bounce_that_was_added():
     """A rendered Lambertian bowl (the solve of its clean images is exact) plus the bounce of its true surface:
     the loop's solve is closer to the truth than the plain solve of the lit-up images."""
@@ -122,6 +171,18 @@ def test_the_loop_removes_a_bounce_that_was_added():
 
     assert err(loop, base.normals) < 0.5 * err(plain, base.normals)
     assert err(loop, n) < err(plain, n)
+    # the safeguard: the lit images fit the model better without the bounce, the clean ones worse
+    i = loop.info
+    assert i["interreflection_accepted"] == 1.0 and i["interreflection_confidence_after"] >= i["interreflection_confidence_before"]
+    spurious = ps.solve_hsh(clean, lights, None, mask, seed=0, interreflections=1, interreflection_radius=12)
+    j = spurious.info
+    assert j["interreflection_accepted"] == 0.0 and j["interreflection_rounds"] == 0.0
+    assert j["interreflection_confidence_after"] < j["interreflection_confidence_before"]
+    torch.testing.assert_close(spurious.normals, base.normals, rtol=0, atol=0)  # the first solve, unchanged
+    forced = ps.solve_hsh(clean, lights, None, mask, seed=0, interreflections=1, interreflection_radius=12,
+                          interreflection_safeguard=False)
+    assert forced.info["interreflection_rounds"] == 1.0 and forced.info["interreflection_accepted"] == 0.0
+    assert err(forced, n) > err(base, n)  # subtracting a bounce that is not there costs accuracy
 
 
 def test_missing_observations_emit_nothing_and_integer_images_work():
@@ -152,7 +213,8 @@ def test_the_loop_keeps_missing_and_saturated_observations_and_the_units():
     img = s["images"].clone()
     img[0, 12, 12, 0] = float("nan")
     img[1, 10, 10, :] = 0.9  # a saturation plateau
-    cfg = ps.Settings(interreflections=1, interreflection_radius=6, saturation=0.9, seed=0)
+    cfg = ps.Settings(interreflections=1, interreflection_radius=6, saturation=0.9, seed=0,
+                      interreflection_safeguard=False)  # (the demo has no bounce: the safeguard would drop it)
     res, seen, inten = interreflection_loop(run_stages, img, s["lights"], s["intensities"], s["mask"], cfg)
     assert inten is s["intensities"] and seen.dtype == torch.float32
     assert torch.isnan(seen[0, 12, 12, 0]) and bool((seen[1, 10, 10] == 0.9).all())

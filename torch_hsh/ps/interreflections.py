@@ -8,7 +8,12 @@ Around the solve (``solve_hsh(..., interreflections=R)``, ``torch-hsh ps --inter
 3. :func:`one_bounce`: the light that every pixel receives from the other pixels of the object, once
    reflected, under every light;
 4. subtract it from the images and run the per-pixel stages again from the solve's normals, with its
-   basis BRDFs and robust scale kept (shared model; as the cast-shadow loop does).
+   basis BRDFs and robust scale kept (shared model; as the cast-shadow loop does);
+5. the safeguard (``interreflection_safeguard``, on by default): keep that solve only if its mean
+   confidence (:attr:`HSHResult.confidence`: the robust weights and the fit residuals, at the first
+   solve's robust scale) did not fall. Images that really hold a bounce fit the local BRDF model better
+   once it is removed; subtracting a bounce that is not there (a renderer without interreflections)
+   makes them fit worse. Otherwise the first solve is returned.
 
 Model of step 3 (orthographic view along ``v = +z``, pixel units, DiLiGenT frame; ``p`` receives,
 ``q`` emits). The surface point of pixel ``q`` is ``X_q = (x_q, y_q, z_q)`` with ``x`` to the right,
@@ -22,16 +27,18 @@ receiver:
 
 where ``dA_q = s^2 / max(n_q . v, 0.2)`` is the area of the surface that a cell of ``s x s`` pixels
 around ``q`` covers (``s`` = ``stride``). ``q`` runs over the masked pixels of a disc of ``radius``
-pixels around ``p``, every ``stride``-th row and column. There is no occlusion test between ``p`` and
-``q``: inside the disc a concave surface mostly sees itself. ``F`` is the point-to-area form factor.
+pixels around ``p``, every ``stride``-th row and column within ``near`` pixels and a stride that doubles
+with every doubling of the distance beyond. By default there is no occlusion test between ``p`` and
+``q``: inside a 16-pixel disc a concave surface mostly sees itself (``occlusion=True`` tests the depth
+along the segment; it matters for larger discs). ``F`` is the point-to-area form factor.
 For coplanar points both cosines vanish, so a plane receives nothing. The receiver is diffuse
 (``A_p / pi`` times the incident irradiance), which underestimates a specular receiver's bounce
 toward the camera, and the emitter is Lambertian. This is one bounce, from the observed radiance.
 
-Measured on the suite (docs/photometric_stereo.md, "Interreflections"; 5 seeds): the folded plastic
--0.81 deg, the grooved conductor -0.22, the cat -0.17, harvest -0.04, the scenes without
-interreflections +0.01 (bowl, demo) to +0.08 (the bunny), at 1.2-2.4x the time of the solve. Off
-by default.
+Measured on the suite (docs/photometric_stereo.md, "Interreflections"; 5 seeds, with the safeguard): the
+folded plastic -0.81 deg, the grooved conductor -0.22, the cat -0.17, the bumpy field -0.08, harvest -0.04;
+the bunny and the demo (renderers without interreflections) are rejected on every seed and keep their first
+solve; the bowl +0.01. It costs 1.2-2.4x the time of the solve, so it is off by default.
 """
 from __future__ import annotations
 
@@ -49,10 +56,32 @@ from .settings import Settings
 if TYPE_CHECKING:  # pragma: no cover
     from .result import HSHResult
 
-__all__ = ["INTEGRATION_ITERATIONS", "MAX_RADIUS", "one_bounce", "interreflection_loop"]
+__all__ = ["INTEGRATION_ITERATIONS", "MAX_OCCLUSION_SAMPLES", "MAX_RADIUS", "NEAR_RADIUS", "one_bounce", "interreflection_loop"]
 
 #: Re-weightings of the bilateral integration that gives the loop its surface.
 INTEGRATION_ITERATIONS = 100
+#: Most depth samples per pair in :func:`one_bounce`'s occlusion test.
+MAX_OCCLUSION_SAMPLES = 32
+#: Pixels around a receiver within which :func:`one_bounce` samples every ``stride``-th row and column;
+#: beyond them the stride doubles with the distance.
+NEAR_RADIUS = 16
+
+
+def _disc_samples(radius: int, stride: int, near: int):
+    """``(dy, dx, weight)`` of the emitter samples around a receiver: the multiples of ``stride`` within
+    ``near`` pixels, then of ``2 * stride`` up to ``2 * near``, of ``4 * stride`` up to ``4 * near``, ...,
+    out to ``radius``; ``weight`` is the sample's cell area over ``stride**2``. Each grid is symmetric about
+    the receiver."""
+    out = []
+    step, lo, hi = stride, 0, near
+    while lo < radius:
+        hi = min(hi, radius)
+        grid = range(-(hi // step) * step, hi + 1, step)
+        w = float((step // stride) ** 2)
+        out += [(dy, dx, w) for dy in grid for dx in grid
+                if (dy or dx) and lo * lo < dy * dy + dx * dx <= hi * hi]
+        step, lo, hi = 2 * step, hi, 2 * hi
+    return out
 
 
 def one_bounce(
@@ -64,6 +93,8 @@ def one_bounce(
     *,
     radius: int = 16,
     stride: int = 2,
+    near: Optional[int] = NEAR_RADIUS,
+    occlusion: bool = False,
     light_chunk: int = 16,
 ) -> torch.Tensor:
     """One bounce of interreflection under every light (see the module docstring for the model).
@@ -76,7 +107,17 @@ def one_bounce(
         mask: ``(H, W)`` bool.
         albedo: ``(H, W, C)`` directional albedo of the receiving pixels.
         radius: pixels; the disc of emitters around every receiver.
-        stride: every ``stride``-th row and column of that disc (each standing for ``stride**2`` pixels).
+        stride: every ``stride``-th row and column of that disc (each standing for ``stride**2`` pixels),
+            within ``near`` pixels of the receiver.
+        near: pixels; beyond them the stride doubles at every doubling of the distance (``2 * stride``
+            up to ``2 * near``, ``4 * stride`` up to ``4 * near``, ...; each sample standing for its
+            stride squared), so the work grows with the logarithm of ``radius`` instead of its square.
+            The form factor falls off as ``1 / r**2`` there, and the emitters' sum is smooth. ``None``:
+            ``stride`` everywhere.
+        occlusion: test every pair for a surface between them: the depth at the pixels that the
+            segment from ``p`` to ``q`` crosses (one per step along its longer axis, at most
+            :data:`MAX_OCCLUSION_SAMPLES`) must not rise above the segment by more than half a pixel.
+            Pixels outside the mask do not occlude.
         light_chunk: lights per pass (memory: about ``3 * light_chunk * H * W * C`` values besides the
             output; the form factors are recomputed per pass, one ``(H, W)`` map at a time).
 
@@ -106,6 +147,8 @@ def one_bounce(
         raise ValueError(f"`radius` must be an integer in [1, {MAX_RADIUS}], got {radius!r}")
     if isinstance(stride, bool) or int(stride) != stride or not 1 <= stride <= radius:
         raise ValueError(f"`stride` must be an integer in [1, radius], got {stride!r}")
+    if near is not None and (isinstance(near, bool) or int(near) != near or near < 1):
+        raise ValueError(f"`near` must be None or an integer >= 1, got {near!r}")
     if isinstance(light_chunk, bool) or int(light_chunk) != light_chunk or light_chunk < 1:
         raise ValueError(f"`light_chunk` must be an integer >= 1, got {light_chunk!r}")
     dev = images.device
@@ -120,8 +163,9 @@ def one_bounce(
     zp = torch.nn.functional.pad(z, pad)
     np_ = torch.nn.functional.pad(n.permute(2, 0, 1), pad)  # (3, H + 2R, W + 2R)
     ap = torch.nn.functional.pad(area, pad)
-    grid = range(-(R // s) * s, R + 1, s)  # symmetric about the receiver
-    offsets = [(dy, dx) for dy in grid for dx in grid if (dy or dx) and dy * dy + dx * dx <= R * R]
+    offsets = _disc_samples(R, s, R if near is None else int(near))
+    # occluders: the depth inside the mask; outside it nothing occludes
+    zo = torch.nn.functional.pad(torch.where(m, z, torch.full_like(z, -torch.inf)), pad, value=-math.inf)
 
     def factor(dy: int, dx: int) -> torch.Tensor:
         """cos_p cos_q dA_q / (pi r^2) of every receiver p and its emitter q = p + (dy, dx) (rows, columns)."""
@@ -131,7 +175,15 @@ def one_bounce(
         dot_p = n[..., 0] * dx - n[..., 1] * dy + n[..., 2] * dz
         dot_q = -(np_[0][sl] * dx - np_[1][sl] * dy + np_[2][sl] * dz)
         r2 = dz * dz + float(dx * dx + dy * dy)
-        return dot_p.clamp_min(0) * dot_q.clamp_min(0) * ap[sl] / (math.pi * r2 * r2) * m
+        f = dot_p.clamp_min(0) * dot_q.clamp_min(0) * ap[sl] / (math.pi * r2 * r2) * m
+        if occlusion:  # the pixels that the segment crosses, one per row or column (its longer axis)
+            steps = max(abs(dx), abs(dy))
+            for i in sorted({round(j * steps / min(steps, MAX_OCCLUSION_SAMPLES)) for j in
+                             range(1, min(steps, MAX_OCCLUSION_SAMPLES))}):
+                oy, ox = round(i * dy / steps), round(i * dx / steps)
+                tt = i / steps  # where that pixel sits along the segment
+                f = f * (zo[R + oy:R + oy + H, R + ox:R + ox + W] <= z + tt * dz + 0.5)
+        return f
 
     out = torch.zeros(images.shape, device=dev, dtype=dt)
     alb = albedo.to(dev, dt)
@@ -141,8 +193,9 @@ def one_bounce(
         k = img.shape[0]
         src = torch.nn.functional.pad(img.permute(1, 2, 0, 3).reshape(H, W, k * C).permute(2, 0, 1), pad)
         acc = torch.zeros((k * C, H, W), device=dev, dtype=dt)
-        for dy, dx in offsets:
-            acc.addcmul_(src[:, R + dy:R + dy + H, R + dx:R + dx + W], factor(dy, dx))
+        for dy, dx, w in offsets:
+            f = factor(dy, dx)
+            acc.addcmul_(src[:, R + dy:R + dy + H, R + dx:R + dx + W], f if w == 1 else f * w)
         out[l0:l0 + k] = acc.reshape(k, C, H, W).permute(0, 2, 3, 1) * alb
     return out
 
@@ -157,9 +210,13 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     saturated observation (at or above 0.99 of ``cfg.saturation`` or of the level the first solve
     detected) stays as it was, so the re-solve drops the same ones. Integer and half-precision images
     are corrected in float32. Returns ``(result, images, intensities)``: the last solve and the images
-    it saw, for a later stage. The result's ``info`` gains ``interreflection_rounds``,
-    ``interreflection_fraction`` (the removed bounce over the images' sum inside the mask, last round)
-    and ``interreflection_time_s``.
+    it saw, for a later stage. With ``cfg.interreflection_safeguard`` a round is kept only if the mean
+    confidence of its solve is not below that of the solve before it; the loop stops at the first round
+    that is not kept, and returns the solve and images before it. The result's ``info`` gains
+    ``interreflection_rounds`` (rounds kept), ``interreflection_fraction`` (the estimated bounce over
+    the images' sum inside the mask, last round), ``interreflection_time_s``,
+    ``interreflection_confidence_before`` (first solve) / ``_after`` (last round's solve) and
+    ``interreflection_accepted`` (1 or 0: the last round's decision, also when the safeguard is off).
     """
     from ..render import _intensities
     from ..surface import integrate_normals
@@ -178,7 +235,9 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
         keep |= raw >= 0.99 * float(level)
     unit = raw / e  # the emitted radiance at unit light intensity
     seen = images
-    t_total, frac = 0.0, 0.0
+    t_total, frac, rounds = 0.0, 0.0, 0
+    conf_first = conf = _mean_confidence(res)
+    conf_last, accepted = conf, True
     for _ in range(int(cfg.interreflections)):
         t0 = time.perf_counter()
         m = res.mask.to(images.device)
@@ -186,7 +245,7 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
                                   iterations=INTEGRATION_ITERATIONS)
         bounce = one_bounce(unit, res.normals.detach(), depth, m, res.albedo.detach(),
                             radius=cfg.interreflection_radius)
-        seen = torch.where(keep, raw, (raw - bounce * e).clamp_min(0))
+        corrected = torch.where(keep, raw, (raw - bounce * e).clamp_min(0))
         ok = m[None] & torch.isfinite(unit).all(-1)
         frac = float(bounce[ok].sum() / unit[ok].sum().clamp_min(1e-30))
         del bounce
@@ -195,9 +254,25 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
         # harvest by -0.6 to +2.5 deg while the bounce is 1.5 % of its light (docs/photometric_stereo.md)
         kw = dict(interreflections=0, init=res.normals.to(dt), **reuse_calibration(res))
         first_info = dict(res.info)
-        res = solve(seen, lights, intensities, mask, dataclasses.replace(cfg, **kw))
-        report_first_calibration(res, first_info)
-    res.info["interreflection_rounds"] = float(cfg.interreflections)
+        new = solve(corrected, lights, intensities, mask, dataclasses.replace(cfg, **kw))
+        report_first_calibration(new, first_info)
+        conf_last = _mean_confidence(new)
+        accepted = conf_last >= conf  # the safeguard: the corrected images must fit the model no worse
+        if not accepted and cfg.interreflection_safeguard:
+            break
+        res, seen, conf, rounds = new, corrected, conf_last, rounds + 1
+        if not accepted:
+            break
+    res.info["interreflection_rounds"] = float(rounds)
     res.info["interreflection_fraction"] = frac
     res.info["interreflection_time_s"] = t_total
+    res.info["interreflection_confidence_before"] = conf_first
+    res.info["interreflection_confidence_after"] = conf_last
+    res.info["interreflection_accepted"] = float(accepted)
     return res, seen, intensities
+
+
+def _mean_confidence(res: "HSHResult") -> float:
+    """Mean of the result's confidence over its mask: the safeguard's measure of how well the model fits."""
+    m = res.mask.to(res.confidence.device)
+    return float(res.confidence[m].mean()) if bool(m.any()) else 0.0

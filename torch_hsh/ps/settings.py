@@ -371,6 +371,11 @@ class Settings:
                      "first solve's calibration (default 0: off; see torch_hsh.ps.interreflections)"})
     interreflection_radius: int = _option(16, "pixels: the disc of neighbours that light a pixel in that loop.",
                                           _check_interreflection_radius)
+    interreflection_safeguard: bool = _option(True, """a round of that loop is kept only if the mean confidence of
+        its solve (the robust weights and fit residuals, at the first
+        solve's scale) does not fall (default); ``False`` keeps every round
+        (for evaluations; ``info["interreflection_accepted"]`` still says
+        what the safeguard would have done).""")
     shadow_bias: float = _option(0.25, """height in pixels an occluder must rise above a light ray
         to cast a shadow in that loop (depth-noise margin).""", _check_shadow_bias)
     refine_surface: int = _option(0, """rounds of the whole-surface stage after the solve (default 0: off;
