@@ -173,7 +173,8 @@ def test_the_loop_removes_a_bounce_that_was_added():
     assert err(loop, n) < err(plain, n)
     # the safeguard: the lit images fit the model better without the bounce, the clean ones worse
     i = loop.info
-    assert i["interreflection_accepted"] == 1.0 and i["interreflection_confidence_after"] >= i["interreflection_confidence_before"]
+    assert i["interreflection_accepted"] == 1.0
+    assert i["interreflection_confidence_after"] >= i["interreflection_confidence_before"]
     spurious = ps.solve_hsh(clean, lights, None, mask, seed=0, interreflections=1, interreflection_radius=12)
     j = spurious.info
     assert j["interreflection_accepted"] == 0.0 and j["interreflection_rounds"] == 0.0

@@ -56,7 +56,8 @@ from .settings import Settings
 if TYPE_CHECKING:  # pragma: no cover
     from .result import HSHResult
 
-__all__ = ["INTEGRATION_ITERATIONS", "MAX_OCCLUSION_SAMPLES", "MAX_RADIUS", "NEAR_RADIUS", "one_bounce", "interreflection_loop"]
+__all__ = ["INTEGRATION_ITERATIONS", "MAX_OCCLUSION_SAMPLES", "MAX_RADIUS", "NEAR_RADIUS", "one_bounce",
+           "interreflection_loop"]
 
 #: Re-weightings of the bilateral integration that gives the loop its surface.
 INTEGRATION_ITERATIONS = 100
