@@ -274,6 +274,10 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
 
 
 def _mean_confidence(res: "HSHResult") -> float:
-    """Mean of the result's confidence over its mask: the safeguard's measure of how well the model fits."""
-    m = res.mask.to(res.confidence.device)
-    return float(res.confidence[m].mean()) if bool(m.any()) else 0.0
+    """Mean of the result's confidence over its mask: the safeguard's measure of how well the model fits
+    (NaN without a confidence map, so that the safeguard keeps the earlier solve)."""
+    conf = res.confidence
+    if conf is None:
+        return float("nan")
+    m = res.mask.to(conf.device)
+    return float(conf[m].mean()) if bool(m.any()) else float("nan")
