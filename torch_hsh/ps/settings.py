@@ -364,11 +364,13 @@ class Settings:
         solve's surface gives every pixel the light its neighbours within
         ``interreflection_radius`` pixels send it, once reflected; that is
         subtracted from the images and the per-pixel stages run again with
-        the solve's calibration (see :mod:`torch_hsh.ps.interreflections`;
-        needs ``(L, H, W, C)`` images).""", _check_interreflections,
+        the solve's calibration; a round is kept only where the fit improves
+        (``interreflection_safeguard``; see
+        :mod:`torch_hsh.ps.interreflections`; needs ``(L, H, W, C)`` images).""", _check_interreflections,
         cli={"flag": "--interreflections", "type": ("int", 0, 3),
              "help": "rounds of one-bounce interreflection removal, each followed by the per-pixel stages with the "
-                     "first solve's calibration (default 0: off; see torch_hsh.ps.interreflections)"})
+                     "first solve's calibration and kept only if the fit's mean confidence does not fall (default 0: "
+                     "off; see torch_hsh.ps.interreflections)"})
     interreflection_radius: int = _option(16, "pixels: the disc of neighbours that light a pixel in that loop.",
                                           _check_interreflection_radius)
     interreflection_safeguard: bool = _option(True, """a round of that loop is kept only if the mean confidence of
