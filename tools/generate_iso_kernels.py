@@ -165,8 +165,9 @@ def source() -> str:
 #define ISO_SMALL_POP_OPTIONS
 #endif
 
-/* Geometry of row j (as geom_block): unit vectors, t = 2z - 1, a, rho, sio = s_i s_o and the flag v. */
-#define ISO_SMALL_GEOM                                                                                   \\
+/* Geometry of row j shared by both passes (as geom_block): unit vectors, t = 2z - 1, a, rho, z clamped at 0
+ * (zpi, zpo) and the flag v. */
+#define ISO_SMALL_UNIT                                                                                   \\
     T xi = wib[3 * j], yi = wib[3 * j + 1], zi = wib[3 * j + 2];                                           \\
     T xo = wob[3 * j], yo = wob[3 * j + 1], zo = wob[3 * j + 2];                                           \\
     const T ni = xi * xi + yi * yi + zi * zi, no = xo * xo + yo * yo + zo * zo;                           \\
@@ -176,27 +177,20 @@ def source() -> str:
     xi *= ii; yi *= ii; zi *= ii;                                                                        \\
     xo *= io; yo *= io; zo *= io;                                                                        \\
     const T zpi = zi > 0 ? zi : (T)0, zpo = zo > 0 ? zo : (T)0;                                          \\
-    const T si = SQRT(zpi / (1 + zpi)), so = SQRT(zpo / (1 + zpo));                                      \\
-    const T ti = 2 * zi - 1, to = 2 * zo - 1;                                                            \\
-    const T a = xi * xo + yi * yo, rho = (xi * xi + yi * yi) * (xo * xo + yo * yo), sio = si * so;       \\
-    const T v = (oki && oko && zi >= 0 && zo >= 0) ? (T)1 : (T)0;
-
-/* The forward's geometry: as ISO_SMALL_GEOM, but only the product sio = s_i s_o is needed, and its square
- * sio2 = z_i z_o / ((1 + z_i)(1 + z_o)) takes one square root and one division instead of two of each. */
-#define ISO_SMALL_GEOM_FWD                                                                               \\
-    T xi = wib[3 * j], yi = wib[3 * j + 1], zi = wib[3 * j + 2];                                           \\
-    T xo = wob[3 * j], yo = wob[3 * j + 1], zo = wob[3 * j + 2];                                           \\
-    const T ni = xi * xi + yi * yi + zi * zi, no = xo * xo + yo * yo + zo * zo;                           \\
-    bad |= !(ni <= TMAX) | !(no <= TMAX);                                                                \\
-    const int oki = ni > tiny, oko = no > tiny;                                                          \\
-    const T ii = oki ? (T)1 / SQRT(ni) : (T)1, io = oko ? (T)1 / SQRT(no) : (T)1;                        \\
-    xi *= ii; yi *= ii; zi *= ii;                                                                        \\
-    xo *= io; yo *= io; zo *= io;                                                                        \\
-    const T zpi = zi > 0 ? zi : (T)0, zpo = zo > 0 ? zo : (T)0;                                          \\
-    const T sio2 = zpi * zpo / ((1 + zpi) * (1 + zpo)), sio = SQRT(sio2);                                \\
     const T ti = 2 * zi - 1, to = 2 * zo - 1;                                                            \\
     const T a = xi * xo + yi * yo, rho = (xi * xi + yi * yi) * (xo * xo + yo * yo);                      \\
     const T v = (oki && oko && zi >= 0 && zo >= 0) ? (T)1 : (T)0;
+
+/* The backward's geometry: ISO_SMALL_UNIT, s_i, s_o (their derivatives need them apart) and sio = s_i s_o. */
+#define ISO_SMALL_GEOM                                                                                   \\
+    ISO_SMALL_UNIT                                                                                       \\
+    const T si = SQRT(zpi / (1 + zpi)), so = SQRT(zpo / (1 + zpo)), sio = si * so;
+
+/* The forward's geometry: ISO_SMALL_UNIT and only the product sio = s_i s_o, whose square
+ * sio2 = z_i z_o / ((1 + z_i)(1 + z_o)) takes one square root and one division instead of two of each. */
+#define ISO_SMALL_GEOM_FWD                                                                               \\
+    ISO_SMALL_UNIT                                                                                       \\
+    const T sio2 = zpi * zpo / ((1 + zpi) * (1 + zpo)), sio = SQRT(sio2);
 
 /* The backward's extra geometry: ds/dz of both directions (horizon-safe, cut to zero for z <= eps). */
 #define ISO_SMALL_GEOM_BWD                                                                               \\
@@ -247,6 +241,7 @@ int SUF(iso_small_bwd)(int64_t r0, int64_t r1, int P, const T *wi, const T *wo, 
 #pragma GCC pop_options
 #undef ISO_SMALL_POP_OPTIONS
 #endif
+#undef ISO_SMALL_UNIT
 #undef ISO_SMALL_GEOM
 #undef ISO_SMALL_GEOM_FWD
 #undef ISO_SMALL_GEOM_BWD
