@@ -259,9 +259,8 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
         report_first_calibration(new, first_info)
         conf_last = _mean_confidence(new)
         accepted = conf_last >= conf  # the safeguard: the corrected images must fit the model no worse
-        if not accepted and cfg.interreflection_safeguard:
-            break
-        res, seen, conf, rounds = new, corrected, conf_last, rounds + 1
+        if accepted or not cfg.interreflection_safeguard:
+            res, seen, conf, rounds = new, corrected, conf_last, rounds + 1
         if not accepted:
             break
     res.info["interreflection_rounds"] = float(rounds)
