@@ -10,6 +10,9 @@ Fixtures return *factories* so each test picks its own sizes:
   product rule over ``Omega_i x Omega_o`` (``M = (nz nphi)**2``).
 * ``random_dirs(shape, dtype, upper=True, seed=0)`` -> unit directions ``(*shape, 3)``,
   on the upper hemisphere by default, kept away from the horizon and the pole.
+
+Every test starts from the same global torch seed (the autouse fixture ``_seed_torch``), so a test
+that draws without its own generator still sees the same numbers on every run and in any order.
 """
 from __future__ import annotations
 
@@ -122,3 +125,9 @@ def edge_case_dirs(n: int, seed: int, dtype=torch.float64, special: bool = True)
             [1e-9, 0.0, 1.0],  # near the pole
         ], dtype=torch.float64)
     return d.to(dtype)
+
+
+@pytest.fixture(autouse=True)
+def _seed_torch():
+    """Reset the global torch seed before each test: no test depends on which tests ran before it."""
+    torch.manual_seed(0)

@@ -239,8 +239,11 @@ def test_gradcheck_native_kernels_float64():
     assert torch.autograd.gradcheck(lambda x: torch_hsh.helmholtz_isotropic(x, x, 3), (a,))
     assert torch.autograd.gradcheck(lambda x, y: torch_hsh.helmholtz_anisotropic(x, y, 2), (a, b))
     assert torch.autograd.gradcheck(lambda x: torch_hsh.hsh(x, 5), (a,))
-    zi = torch.rand(6, dtype=F64).requires_grad_(True)
-    cd = (torch.rand(6, dtype=F64) * 2 - 1).requires_grad_(True)
+    # Away from z = 0 and |cos| = 1: there the HSH carry sqrt(z (1 - z)) and the finite differences
+    # of gradcheck (eps 1e-6) no longer see a smooth function (CI drew z = 1.1e-5 once).
+    g = torch.Generator().manual_seed(15)
+    zi = (0.05 + 0.9 * torch.rand(6, generator=g, dtype=F64)).requires_grad_(True)
+    cd = (torch.rand(6, generator=g, dtype=F64) * 1.8 - 0.9).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda u, v: torch_hsh.helmholtz_isotropic_cosines(u, u.flip(0), v, 3), (zi, cd))
 
 
