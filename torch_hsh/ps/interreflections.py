@@ -4,11 +4,13 @@ Around the solve (``solve_hsh(..., interreflections=R)``, ``torch-hsh ps --inter
 
 1. solve;
 2. the surface of that solve: its normals integrated with :func:`torch_hsh.surface.integrate_normals`
-   (bilateral, so that the depth keeps its jumps);
+   (bilateral, so that the depth keeps its jumps; :data:`~torch_hsh.ps.settings.DEPTH_START_ITERATIONS`
+   re-weightings, as for the whole-surface stage's start);
 3. :func:`one_bounce`: the light that every pixel receives from the other pixels of the object, once
    reflected, under every light;
 4. subtract it from the images and run the per-pixel stages again from the solve's normals, with its
-   basis BRDFs and robust scale kept (shared model; as the cast-shadow loop does);
+   basis BRDFs and robust scale kept (shared model; as the cast-shadow loop does) and without the cone
+   search (the first solve chose each pixel's basin);
 5. the safeguard (``interreflection_safeguard``, on by default): keep that solve only if its mean
    confidence (:attr:`HSHResult.confidence`: the robust weights and the fit residuals, at the first
    solve's robust scale) did not fall. Images that really hold a bounce fit the local BRDF model better
@@ -50,17 +52,15 @@ from typing import TYPE_CHECKING, Callable, Optional, Tuple
 import torch
 
 from .calibration import report_first_calibration, reuse_calibration
+from .settings import DEPTH_START_ITERATIONS, Settings
 from .settings import MAX_INTERREFLECTION_RADIUS as MAX_RADIUS
-from .settings import Settings
 
 if TYPE_CHECKING:  # pragma: no cover
     from .result import HSHResult
 
-__all__ = ["INTEGRATION_ITERATIONS", "MAX_OCCLUSION_SAMPLES", "MAX_RADIUS", "NEAR_RADIUS", "one_bounce",
+__all__ = ["MAX_OCCLUSION_SAMPLES", "MAX_RADIUS", "NEAR_RADIUS", "one_bounce",
            "interreflection_loop"]
 
-#: Re-weightings of the bilateral integration that gives the loop its surface.
-INTEGRATION_ITERATIONS = 100
 #: Most depth samples per pair in :func:`one_bounce`'s occlusion test.
 MAX_OCCLUSION_SAMPLES = 32
 #: Pixels around a receiver within which :func:`one_bounce` samples every ``stride``-th row and column;
@@ -243,7 +243,7 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
         t0 = time.perf_counter()
         m = res.mask.to(images.device)
         depth = integrate_normals(res.normals.detach().to(torch.float64).cpu(), m.cpu(), method="bilateral",
-                                  iterations=INTEGRATION_ITERATIONS)
+                                  iterations=DEPTH_START_ITERATIONS)
         bounce = one_bounce(unit, res.normals.detach(), depth, m, res.albedo.detach(),
                             radius=cfg.interreflection_radius)
         corrected = torch.where(keep, raw, (raw - bounce * e).clamp_min(0))
@@ -253,7 +253,8 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
         t_total += time.perf_counter() - t0
         # the first solve's calibration is kept: a fresh one lands in another basin on some seeds, which moved
         # harvest by -0.6 to +2.5 deg while the bounce is 1.5 % of its light (docs/photometric_stereo.md)
-        kw = dict(interreflections=0, init=res.normals.to(dt), **reuse_calibration(res))
+        # and no cone search: the first solve chose every pixel's basin, and the bounce is a small change
+        kw = dict(interreflections=0, init=res.normals.to(dt), search_angles=(), **reuse_calibration(res))
         first_info = dict(res.info)
         new = solve(corrected, lights, intensities, mask, dataclasses.replace(cfg, **kw))
         report_first_calibration(new, first_info)

@@ -76,7 +76,7 @@ from .observations import Observations, observe
 from .optim import _ridge_diag, cauchy_weights, combine, irls_weights, observation_residual, solve_weights
 from .refinement import Refinement, refine_shared_chunk
 from .result import HSHResult, confidence, directional_albedo_view
-from .settings import SURFACE_ITERATIONS, SURFACE_ROUNDS, Settings
+from .settings import DEPTH_START_ITERATIONS, SURFACE_ITERATIONS, SURFACE_ROUNDS, Settings
 
 __all__ = ["refine_surface", "depth_normals", "discontinuity_weights", "SURFACE_ROUNDS", "SURFACE_ITERATIONS"]
 #: Sharpness of the discontinuity weights (Cao et al.'s ``k``), per squared pixel of depth difference.
@@ -85,7 +85,6 @@ _K = 2.0
 _IRLS = 2
 #: Integrator of the start depth, and its cap on re-weighting iterations (see the module docstring).
 _START_METHOD = "bilateral"
-_BILATERAL_ITERATIONS = 10
 #: Pixels (a strided subset) of the held-out-light comparison.
 _HOLDOUT_PIXELS = 8192
 #: Pixels per chunk of the loss evaluation.
@@ -124,7 +123,7 @@ class _Depth:
         box = (slice(int(r[0]), int(r[-1]) + 1), slice(int(c[0]), int(c[-1]) + 1))
         m = mask[box]
         z0 = integrate_normals(normals[box].detach().to(torch.float64).cpu(), m.cpu(), method=method, fill=0.0,
-                              iterations=_BILATERAL_ITERATIONS)
+                              iterations=DEPTH_START_ITERATIONS)
         dev = normals.device
         h, w = m.shape
         lam_h = 2.0 - 2.0 * torch.cos(math.pi * torch.arange(h, dtype=torch.float64) / h)
