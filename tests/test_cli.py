@@ -497,9 +497,27 @@ def test_depth_of_the_whole_surface_stage_is_written_as_is(tmp_path, capsys):
     out = capsys.readouterr()
     assert code == 0, out.err
     assert "whole-surface stage" in out.out
+    # the stages after the solve say what their safeguards decided: the surface stage, and the
+    # interreflection round that comes with it
+    assert "whole-surface stage: kept" in out.out or "whole-surface stage: rejected" in out.out
+    assert "interreflections: one bounce" in out.out
     res = ps.HSHResult.load(tmp_path / "r" / "result.npz")
     depth = np.load(tmp_path / "r" / "depth.npy")
     m = res.mask.numpy()
     assert res.depth is not None and np.allclose(depth[m], res.depth.numpy()[m], rtol=1e-6)
     metrics = json.loads((tmp_path / "r" / "metrics.json").read_text())
     assert metrics["surface"]["integrator"] == "whole-surface stage"
+
+
+def test_stage_report_names_each_decision():
+    from torch_hsh.cli import _stage_report
+
+    assert _stage_report({}) == []
+    lines = _stage_report({"interreflection_accepted": 0.0, "interreflection_fraction": 0.007,
+                           "interreflection_confidence_before": 0.95, "interreflection_confidence_after": 0.94,
+                           "interreflection_time_s": 4.7, "surface_accepted": 1.0, "surface_heldout_before": 0.0348,
+                           "surface_heldout_after": 0.0347, "surface_time_s": 21.9})
+    assert len(lines) == 2
+    assert "rejected, the first solve is returned" in lines[0] and "0.70% of the light" in lines[0]
+    assert "0.9500 -> 0.9400" in lines[0]
+    assert lines[1].startswith("whole-surface stage: kept") and "0.0348 -> 0.0347" in lines[1]

@@ -222,3 +222,31 @@ def test_the_loop_keeps_missing_and_saturated_observations_and_the_units():
     fine = torch.isfinite(img) & (img < 0.891)
     assert bool((seen[fine] <= img[fine]).all()) and float((img - seen)[fine].max()) > 0
     assert res.info["interreflection_fraction"] > 0 and torch.isfinite(res.normals).all()
+
+
+def test_the_loop_does_not_depend_on_an_empty_margin():
+    """The loop integrates and bounces on the mask's bounding box: the same object with an empty margin
+    around it (a full-size capture of a small object) gives the same normals."""
+    from torch_hsh.brdf import BlinnPhong
+    from torch_hsh.render import render
+
+    S = 24
+    c = (S - 1) / 2
+    z, n, _ = _surface(S, lambda x, y: 0.03 * ((x - c) ** 2 + (y + c) ** 2),
+                       lambda x, y: (0.06 * (x - c), 0.06 * (y + c)))
+    rows, cols = torch.meshgrid(torch.arange(S, dtype=F64), torch.arange(S, dtype=F64), indexing="ij")
+    mask = (rows - c) ** 2 + (cols - c) ** 2 < (0.45 * S) ** 2
+    lights = scenes.diligent_like_lights(24, seed=0, dtype=F64)
+    P = S * S
+    brdf = BlinnPhong(torch.full((P, 3), 0.7, dtype=F64), torch.zeros((P, 1), dtype=F64),
+                      torch.full((P, 1), 30.0, dtype=F64))
+    img = render(n.reshape(P, 3), lights, brdf).reshape(-1, S, S, 3) * mask[..., None]
+    img = img + one_bounce(img, n, z, mask, torch.full((S, S, 3), 0.7, dtype=F64), radius=8)
+    kw = dict(seed=0, interreflections=1, interreflection_radius=8, interreflection_safeguard=False)
+    small = ps.solve_hsh(img, lights, None, mask, **kw)
+    pad = (0, 0, 5, 11, 7, 3)  # channels, columns (left, right), rows (top, bottom)
+    big = ps.solve_hsh(torch.nn.functional.pad(img, pad), lights, None,
+                       torch.nn.functional.pad(mask, pad[2:]), **kw)
+    assert small.info["interreflection_fraction"] > 0.005
+    assert big.info["interreflection_fraction"] == pytest.approx(small.info["interreflection_fraction"], rel=1e-9)
+    torch.testing.assert_close(big.normals[7:7 + S, 5:5 + S][mask], small.normals[mask], rtol=0, atol=1e-9)

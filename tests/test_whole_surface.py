@@ -147,6 +147,7 @@ def test_solve_hsh_runs_the_stage_and_the_result_keeps_the_depth(demo, tmp_path)
               "surface_shadowed_fraction"):
         assert k in out.info and math.isfinite(out.info[k])
     assert out.info["surface_rounds"] == 1.0
+    assert out.info["interreflection_rounds"] in (0.0, 1.0)  # one safeguarded round comes with the stage
     out.save(tmp_path / "r.npz")
     back = ps.HSHResult.load(tmp_path / "r.npz")
     assert torch.equal(back.depth.isnan(), out.depth.isnan())
@@ -168,6 +169,10 @@ def test_arguments_are_checked(demo):
     with pytest.raises(ValueError, match="refine_surface"):
         Settings(refine_surface=1.5)
     assert Settings(refine_surface=True).refine_surface == ps.settings.SURFACE_ROUNDS
+    # the interreflection round comes with the stage unless it is set
+    assert Settings().interreflections == 0 and Settings(refine_surface=True).interreflections == 1
+    assert Settings(refine_surface=True, interreflections=0).interreflections == 0
+    assert Settings(interreflections=2).interreflections == 2
     assert Settings(refine_surface=False).refine_surface == 0
     with pytest.raises(ValueError, match="surface_iterations"):
         Settings(surface_iterations=0)

@@ -444,10 +444,29 @@ def _solve_methods(args, opts, imgs, lights, inten, mask, gt, say):
     res = ps.solve_hsh(imgs, lights, inten, mask, progress=not args.quiet, **opts)
     t_hsh = time.perf_counter() - t
     rows.append((f"HSH (order {opts['order']})", *_errors(res.normals, gt, mask), t_hsh))
+    for line in _stage_report(res.info):
+        say(line)
     say(f"\n{'method':32s} {'mean (deg)':>10s} {'median (deg)':>12s} {'time (s)':>9s}")
     for name, mean, med, tt in rows:
         say(f"{name:32s} {mean:10.2f} {med:12.2f} {tt:9.2f}")
     return res, t_hsh, rows
+
+
+def _stage_report(info: Dict[str, Any]) -> List[str]:
+    """One line per stage that ran after the solve (interreflections, whole surface): its safeguard's decision
+    and the numbers it was taken on (``info`` of the result)."""
+    lines = []
+    if "interreflection_accepted" in info:
+        kept = "kept" if info["interreflection_accepted"] else "rejected, the first solve is returned"
+        lines.append(f"interreflections: one bounce ({info['interreflection_fraction']:.2%} of the light) removed, "
+                     f"round {kept} (mean confidence {info['interreflection_confidence_before']:.4f} -> "
+                     f"{info['interreflection_confidence_after']:.4f}; {info['interreflection_time_s']:.1f} s of "
+                     f"bounce)")
+    if "surface_accepted" in info:
+        kept = "kept" if info["surface_accepted"] else "rejected, its start is returned"
+        lines.append(f"whole-surface stage: {kept} (held-out-light loss {info['surface_heldout_before']:.4g} -> "
+                     f"{info['surface_heldout_after']:.4g}; {info['surface_time_s']:.1f} s)")
+    return lines
 
 
 def _holdout_metrics(args, opts, imgs, lights, inten, mask, say) -> Dict[str, Any]:

@@ -37,7 +37,8 @@ stage  module                      returns             what it does
 
 Around the stages, all opt-in: the cast-shadow loop (:mod:`.shadows`), the removal of one
 bounce of interreflection (:mod:`.interreflections`) and the whole-surface stage
-(:mod:`.whole_surface`), in that order.
+(:mod:`.whole_surface`), in that order. The whole-surface stage brings one (safeguarded) round
+of the interreflection loop unless ``interreflections`` is set.
 
 The forward model lives in :mod:`.design`, the numerical kernels (LM, IRLS,
 small solves) in :mod:`.optim`, the validated options in :mod:`.settings`.

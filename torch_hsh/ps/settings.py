@@ -153,6 +153,8 @@ def _check_cast_shadows(v, s):
 
 
 def _check_interreflections(v, s):
+    if v is None:  # resolved in Settings.__post_init__, once refine_surface is known
+        return None
     if isinstance(v, bool) or int(v) != v or v < 0:
         raise ValueError(f"`interreflections` must be an integer >= 0 (rounds of the loop), got {v!r}")
     return int(v)
@@ -365,17 +367,20 @@ class Settings:
         needs ``(L, H, W, C)`` images).""", _check_cast_shadows,
         cli={"flag": "--cast-shadows", "type": ("int", 0, 5),
              "help": "rounds of the cast-shadow loop of the HSH solver (default 0: off; see torch_hsh.ps.shadows)"})
-    interreflections: int = _option(0, """rounds of one-bounce interreflection removal (default 0: off): the
+    interreflections: Optional[int] = _option(None, """rounds of one-bounce interreflection removal: the
         solve's surface gives every pixel the light its neighbours within
         ``interreflection_radius`` pixels send it, once reflected; that is
         subtracted from the images and the per-pixel stages run again with
         the solve's calibration; a round is kept only where the fit improves
         (``interreflection_safeguard``; see
-        :mod:`torch_hsh.ps.interreflections`; needs ``(L, H, W, C)`` images).""", _check_interreflections,
+        :mod:`torch_hsh.ps.interreflections`; needs ``(L, H, W, C)`` images).
+        Default ``None``: one round when the whole-surface stage runs
+        (``refine_surface``), which then starts from its result; none
+        otherwise. ``0`` switches it off.""", _check_interreflections,
         cli={"flag": "--interreflections", "type": ("int", 0, 3),
              "help": "rounds of one-bounce interreflection removal, each followed by the per-pixel stages with the "
-                     "first solve's calibration and kept only if the fit's mean confidence does not fall (default 0: "
-                     "off; see torch_hsh.ps.interreflections)"})
+                     "first solve's calibration and kept only if the fit's mean confidence does not fall (default: 1 "
+                     "with --refine-surface, else 0; see torch_hsh.ps.interreflections)"})
     interreflection_radius: int = _option(16, "pixels: the disc of neighbours that light a pixel in that loop.",
                                           _check_interreflection_radius)
     interreflection_safeguard: bool = _option(True, """a round of that loop is kept only if the mean confidence of
@@ -449,6 +454,8 @@ class Settings:
                 object.__setattr__(self, f.name, check(getattr(self, f.name), self))
         if self.basis is not None:  # the basis fixes the number of materials
             object.__setattr__(self, "materials", int(self.basis.shape[0]))
+        if self.interreflections is None:  # one safeguarded round before the whole-surface stage
+            object.__setattr__(self, "interreflections", 1 if self.refine_surface else 0)
 
     @property
     def iterations(self) -> int:

@@ -56,8 +56,11 @@ and the error is the mean Cauchy loss of the held-out valid observations at the 
 The refined result is returned only if it lowers that error; otherwise the start is returned unchanged
 (``info["surface_accepted"] = 0``). ``info`` reports both errors either way.
 
-Limits: the shared model only (``materials`` not ``None``); orthographic, distant lights;
-interreflections are not modelled; disconnected parts of the mask keep the offsets of the start
+Interreflections are not modelled inside the stage. By default (``interreflections=None``) the solver
+runs one safeguarded round of :mod:`~torch_hsh.ps.interreflections` before it, and the stage starts from
+that round's result and images (one bounce removed).
+
+Limits: the shared model only (``materials`` not ``None``); orthographic, distant lights; disconnected parts of the mask keep the offsets of the start
 (only the shadows they cast on each other depend on them).
 """
 from __future__ import annotations
