@@ -1,4 +1,5 @@
-"""Normal geometry of the photometric-stereo solvers: angular error between normal maps, tangent frames."""
+"""Normal geometry of the photometric-stereo solvers: angular error between normal maps, tangent frames, the
+bounding box of a mask."""
 from __future__ import annotations
 
 from typing import Optional, Tuple
@@ -7,7 +8,7 @@ import torch
 
 from .._checks import check_dirs, check_shape
 
-__all__ = ["angular_error", "tangent_frame"]
+__all__ = ["angular_error", "tangent_frame", "mask_box"]
 
 
 def angular_error(
@@ -47,3 +48,18 @@ def tangent_frame(n: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     t1 = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], dim=-1)
     t2 = torch.stack([b, sign + y * y * a, -y], dim=-1)
     return t1, t2
+
+
+def mask_box(mask: torch.Tensor) -> Tuple[slice, slice]:
+    """Rows and columns of the smallest box that holds every ``True`` pixel of an ``(H, W)`` mask (the whole
+    image when the mask is empty). The stages that work on a depth map crop to it.
+
+    Example:
+        >>> m = torch.zeros(5, 6, dtype=torch.bool); m[1:3, 2:5] = True
+        >>> mask_box(m)
+        (slice(1, 3, None), slice(2, 5, None))
+    """
+    rows, cols = mask.any(1).nonzero().squeeze(1), mask.any(0).nonzero().squeeze(1)
+    if rows.numel() == 0:
+        return slice(None), slice(None)
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)

@@ -53,6 +53,7 @@ from typing import TYPE_CHECKING, Callable, Optional, Tuple
 
 import torch
 
+from ._geometry import mask_box
 from .calibration import report_first_calibration, reuse_calibration
 from .settings import DEPTH_START_ITERATIONS, Settings
 from .settings import MAX_INTERREFLECTION_RADIUS as MAX_RADIUS
@@ -244,7 +245,7 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     for _ in range(int(cfg.interreflections or 0)):  # None is resolved by Settings; 0 here only for mypy
         t0 = time.perf_counter()
         m = res.mask.to(images.device)
-        box = _bounding_box(m)  # nothing outside the mask emits or receives: the crop gives the same bounce
+        box = mask_box(m)  # nothing outside the mask emits or receives: the crop gives the same bounce
         depth = integrate_normals(res.normals[box].detach().to(torch.float64).cpu(), m[box].cpu(),
                                   method="bilateral", iterations=DEPTH_START_ITERATIONS)
         bounce = torch.zeros_like(unit)
@@ -275,15 +276,6 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     res.info["interreflection_confidence_after"] = conf_last
     res.info["interreflection_accepted"] = float(accepted)
     return res, seen, intensities
-
-
-def _bounding_box(m: torch.Tensor) -> Tuple[slice, slice]:
-    """Rows and columns of the smallest box that holds every pixel of the ``(H, W)`` mask (the whole image
-    when the mask is empty)."""
-    rows, cols = m.any(1).nonzero().squeeze(1), m.any(0).nonzero().squeeze(1)
-    if rows.numel() == 0:
-        return slice(None), slice(None)
-    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
 
 
 def _mean_confidence(res: "HSHResult") -> float:

@@ -144,6 +144,8 @@ def solve_hsh(
         (torch.Size([64, 64, 3]), torch.Size([64, 64, 3, 20]))
     """
     cfg = Settings(**overrides) if settings is None else dataclasses.replace(settings, **overrides)
+    if cfg.refine_surface and cfg.materials is None:  # before any solve: the stage would refuse its result
+        raise ValueError("`refine_surface` needs the shared model (`materials` >= 1 or 'auto'), got materials=None")
     solve = functools.partial(shadow_loop, run_stages) if cfg.cast_shadows else run_stages
     if cfg.interreflections:  # the later stages see the images without the bounce
         res, images, intensities = interreflection_loop(solve, images, lights, intensities, mask, cfg)

@@ -60,8 +60,8 @@ Interreflections are not modelled inside the stage. By default (``interreflectio
 runs one safeguarded round of :mod:`~torch_hsh.ps.interreflections` before it, and the stage starts from
 that round's result and images (one bounce removed).
 
-Limits: the shared model only (``materials`` not ``None``); orthographic, distant lights; disconnected parts of the mask keep the offsets of the start
-(only the shadows they cast on each other depend on them).
+Limits: the shared model only (``materials`` not ``None``); orthographic, distant lights; disconnected
+parts of the mask keep the offsets of the start (only the shadows they cast on each other depend on them).
 """
 from __future__ import annotations
 
@@ -73,6 +73,7 @@ from typing import Dict, Optional, Tuple
 import torch
 
 from ._chunks import scatter_pixels
+from ._geometry import mask_box
 from .coefficients import fit_coefficients
 from .design import MixedDesign
 from .observations import Observations, observe
@@ -121,9 +122,7 @@ class _Depth:
     def start(cls, normals: torch.Tensor, mask: torch.Tensor, dtype, method: str = _START_METHOD) -> "_Depth":
         from ..surface import integrate_normals
 
-        r = mask.any(1).nonzero().squeeze(1)
-        c = mask.any(0).nonzero().squeeze(1)
-        box = (slice(int(r[0]), int(r[-1]) + 1), slice(int(c[0]), int(c[-1]) + 1))
+        box = mask_box(mask)
         m = mask[box]
         z0 = integrate_normals(normals[box].detach().to(torch.float64).cpu(), m.cpu(), method=method, fill=0.0,
                               iterations=DEPTH_START_ITERATIONS)
