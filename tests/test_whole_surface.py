@@ -182,6 +182,8 @@ def test_arguments_are_checked(demo):
         ps.refine_surface(dataclasses.replace(res, basis_brdfs=None), s["images"], s["lights"])
     with pytest.raises(ValueError, match="`refine_surface` needs the shared model"):  # refused before any solve
         ps.solve_hsh(s["images"], s["lights"], None, s["mask"], materials=None, refine_surface=True)
+    with pytest.raises(ValueError, match=r"default with `refine_surface`\) needs images of shape \(L, H, W, C\)"):
+        ps.solve_hsh(s["images"].reshape(s["images"].shape[0], -1, 3), s["lights"], None, refine_surface=True)
     with pytest.raises(ValueError, match="images"):
         ps.refine_surface(res, s["images"].reshape(24, -1, 3), s["lights"])
     with pytest.raises(ValueError, match="images"):

@@ -226,7 +226,8 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     from ..surface import integrate_normals
 
     if images.dim() != 4:
-        raise ValueError(f"`interreflections` needs images of shape (L, H, W, C), got {tuple(images.shape)}")
+        raise ValueError("`interreflections` (one round by default with `refine_surface`) needs images of shape "
+                         f"(L, H, W, C), got {tuple(images.shape)}")
     res = solve(images, lights, intensities, mask, cfg)
     dt = images.dtype if images.dtype in (torch.float32, torch.float64) else torch.float32
     L, C = images.shape[0], images.shape[-1]
