@@ -20,6 +20,24 @@ def _surface(S, fn, grad):
     return z, n, torch.stack([x, y, z], -1)
 
 
+def _rendered_bowl(S, k, n_lights, albedo):
+    """A paraboloid bowl ``z = k/2 r^2`` (``S x S`` pixels, a disc mask) rendered as Lambertian (Blinn-Phong without
+    its lobe) under DiLiGenT-like lights on a dark background: ``(depth, normals, mask, lights, images)``."""
+    from torch_hsh.brdf import BlinnPhong
+    from torch_hsh.render import render
+
+    c = (S - 1) / 2
+    z, n, _ = _surface(S, lambda x, y: 0.5 * k * ((x - c) ** 2 + (y + c) ** 2),
+                       lambda x, y: (k * (x - c), k * (y + c)))
+    rows, cols = torch.meshgrid(torch.arange(S, dtype=F64), torch.arange(S, dtype=F64), indexing="ij")
+    mask = (rows - c) ** 2 + (cols - c) ** 2 < (0.45 * S) ** 2
+    lights = scenes.diligent_like_lights(n_lights, seed=0, dtype=F64)
+    P = S * S
+    brdf = BlinnPhong(albedo, torch.zeros((P, 1), dtype=F64), torch.full((P, 1), 30.0, dtype=F64))
+    images = render(n.reshape(P, 3), lights, brdf).reshape(-1, S, S, 3) * mask[..., None]
+    return z, n, mask, lights, images
+
+
 def test_a_tilted_plane_does_not_light_itself():
     S = 12
     z, n, _ = _surface(S, lambda x, y: 0.4 * x - 0.7 * y, lambda x, y: (torch.full_like(x, 0.4), torch.full_like(x, -0.7)))
@@ -141,21 +159,9 @@ def test_a_wall_between_two_slopes_occludes_them():
 def test_the_loop_removes_a_bounce_that_was_added():
     """A rendered Lambertian bowl (the solve of its clean images is exact) plus the bounce of its true surface:
     the loop's solve is closer to the truth than the plain solve of the lit-up images."""
-    from torch_hsh.brdf import BlinnPhong
-    from torch_hsh.render import render
-
     S = 48
-    c = (S - 1) / 2
-    z, n, _ = _surface(S, lambda x, y: 0.02 * ((x - c) ** 2 + (y + c) ** 2),
-                       lambda x, y: (0.04 * (x - c), 0.04 * (y + c)))
-    rows, cols = torch.meshgrid(torch.arange(S, dtype=F64), torch.arange(S, dtype=F64), indexing="ij")
-    mask = (rows - c) ** 2 + (cols - c) ** 2 < (0.45 * S) ** 2
-    lights = scenes.diligent_like_lights(48, seed=0, dtype=F64)
-    P = S * S
     g = torch.Generator().manual_seed(1)
-    alb = (0.5 + 0.3 * torch.rand(P, 3, generator=g, dtype=F64))
-    brdf = BlinnPhong(alb, torch.zeros((P, 1), dtype=F64), torch.full((P, 1), 30.0, dtype=F64))
-    clean = render(n.reshape(P, 3), lights, brdf).reshape(-1, S, S, 3) * mask[..., None]  # a dark background
+    z, n, mask, lights, clean = _rendered_bowl(S, 0.04, 48, 0.5 + 0.3 * torch.rand(S * S, 3, generator=g, dtype=F64))
     base = ps.solve_hsh(clean, lights, None, mask, seed=0)
     bounce = one_bounce(clean, n, z, mask, base.albedo, radius=12)
     lit = clean + bounce
@@ -227,20 +233,8 @@ def test_the_loop_keeps_missing_and_saturated_observations_and_the_units():
 def test_the_loop_does_not_depend_on_an_empty_margin():
     """The loop integrates and bounces on the mask's bounding box: the same object with an empty margin
     around it (a full-size capture of a small object) gives the same normals."""
-    from torch_hsh.brdf import BlinnPhong
-    from torch_hsh.render import render
-
     S = 24
-    c = (S - 1) / 2
-    z, n, _ = _surface(S, lambda x, y: 0.03 * ((x - c) ** 2 + (y + c) ** 2),
-                       lambda x, y: (0.06 * (x - c), 0.06 * (y + c)))
-    rows, cols = torch.meshgrid(torch.arange(S, dtype=F64), torch.arange(S, dtype=F64), indexing="ij")
-    mask = (rows - c) ** 2 + (cols - c) ** 2 < (0.45 * S) ** 2
-    lights = scenes.diligent_like_lights(24, seed=0, dtype=F64)
-    P = S * S
-    brdf = BlinnPhong(torch.full((P, 3), 0.7, dtype=F64), torch.zeros((P, 1), dtype=F64),
-                      torch.full((P, 1), 30.0, dtype=F64))
-    img = render(n.reshape(P, 3), lights, brdf).reshape(-1, S, S, 3) * mask[..., None]
+    z, n, mask, lights, img = _rendered_bowl(S, 0.06, 24, torch.full((S * S, 3), 0.7, dtype=F64))
     img = img + one_bounce(img, n, z, mask, torch.full((S, S, 3), 0.7, dtype=F64), radius=8)
     kw = dict(seed=0, interreflections=1, interreflection_radius=8, interreflection_safeguard=False)
     small = ps.solve_hsh(img, lights, None, mask, **kw)
