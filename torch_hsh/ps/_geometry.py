@@ -1,5 +1,5 @@
 """Normal geometry of the photometric-stereo solvers: angular error between normal maps, tangent frames, the
-bounding box of a mask."""
+bounding box of a mask and the depth map that the stages after the solve start from."""
 from __future__ import annotations
 
 from typing import Optional, Tuple
@@ -8,7 +8,7 @@ import torch
 
 from .._checks import check_dirs, check_shape
 
-__all__ = ["angular_error", "tangent_frame", "mask_box"]
+__all__ = ["angular_error", "tangent_frame", "mask_box", "start_depth"]
 
 
 def angular_error(
@@ -63,3 +63,27 @@ def mask_box(mask: torch.Tensor) -> Tuple[slice, slice]:
     if rows.numel() == 0:
         return slice(None), slice(None)
     return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
+def start_depth(normals: torch.Tensor, mask: torch.Tensor, method: str = "bilateral",
+                fill: float = float("nan")) -> Tuple[Tuple[slice, slice], torch.Tensor]:
+    """The depth of a solve's normals that the stages after the solve start from (the interreflection loop's
+    surface, the whole-surface stage's start): :func:`torch_hsh.surface.integrate_normals` on the mask's box
+    (:func:`mask_box`), with :data:`~torch_hsh.ps.settings.DEPTH_START_ITERATIONS` re-weightings.
+
+    Args:
+        normals: ``(H, W, 3)`` normals.
+        mask: ``(H, W)`` bool.
+        method: the integrator (``"bilateral"`` keeps the depth's jumps).
+        fill: value outside the mask.
+
+    Returns:
+        ``(box, depth)``: the box and the ``(h, w)`` float64 CPU depth over it (pixel units).
+    """
+    from ..surface import integrate_normals
+    from .settings import DEPTH_START_ITERATIONS
+
+    box = mask_box(mask)
+    depth = integrate_normals(normals[box].detach().to(torch.float64).cpu(), mask[box].cpu(), method=method,
+                              fill=fill, iterations=DEPTH_START_ITERATIONS)
+    return box, depth

@@ -53,9 +53,9 @@ from typing import TYPE_CHECKING, Callable, Optional, Tuple
 
 import torch
 
-from ._geometry import mask_box
+from ._geometry import start_depth
 from .calibration import report_first_calibration, reuse_calibration
-from .settings import DEPTH_START_ITERATIONS, Settings
+from .settings import Settings
 from .settings import MAX_INTERREFLECTION_RADIUS as MAX_RADIUS
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -223,8 +223,6 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     ``interreflection_accepted`` (1 or 0: the last round's decision, also when the safeguard is off).
     """
     from ..render import _intensities
-    from ..surface import integrate_normals
-
     if images.dim() != 4:
         raise ValueError("`interreflections` (one round by default with `refine_surface`) needs images of shape "
                          f"(L, H, W, C), got {tuple(images.shape)}")
@@ -246,9 +244,7 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     for _ in range(int(cfg.interreflections or 0)):  # None is resolved by Settings; 0 here only for mypy
         t0 = time.perf_counter()
         m = res.mask.to(images.device)
-        box = mask_box(m)  # nothing outside the mask emits or receives: the crop gives the same bounce
-        depth = integrate_normals(res.normals[box].detach().to(torch.float64).cpu(), m[box].cpu(),
-                                  method="bilateral", iterations=DEPTH_START_ITERATIONS)
+        box, depth = start_depth(res.normals, m)  # on the mask's box: nothing outside it emits or receives
         bounce = torch.zeros_like(unit)
         bounce[(slice(None),) + box] = one_bounce(unit[(slice(None),) + box], res.normals[box].detach(), depth,
                                                   m[box], res.albedo[box].detach(), radius=cfg.interreflection_radius)

@@ -73,14 +73,14 @@ from typing import Dict, Optional, Tuple
 import torch
 
 from ._chunks import scatter_pixels
-from ._geometry import mask_box
+from ._geometry import start_depth
 from .coefficients import fit_coefficients
 from .design import MixedDesign
 from .observations import Observations, observe
 from .optim import _ridge_diag, cauchy_weights, combine, irls_weights, observation_residual, solve_weights
 from .refinement import Refinement, refine_shared_chunk
 from .result import HSHResult, confidence, directional_albedo_view
-from .settings import DEPTH_START_ITERATIONS, SURFACE_ITERATIONS, SURFACE_ROUNDS, Settings
+from .settings import SURFACE_ITERATIONS, SURFACE_ROUNDS, Settings
 
 __all__ = ["refine_surface", "depth_normals", "discontinuity_weights", "SURFACE_ROUNDS", "SURFACE_ITERATIONS"]
 #: Sharpness of the discontinuity weights (Cao et al.'s ``k``), per squared pixel of depth difference.
@@ -120,12 +120,8 @@ class _Depth:
 
     @classmethod
     def start(cls, normals: torch.Tensor, mask: torch.Tensor, dtype, method: str = _START_METHOD) -> "_Depth":
-        from ..surface import integrate_normals
-
-        box = mask_box(mask)
+        box, z0 = start_depth(normals, mask, method=method, fill=0.0)
         m = mask[box]
-        z0 = integrate_normals(normals[box].detach().to(torch.float64).cpu(), m.cpu(), method=method, fill=0.0,
-                              iterations=DEPTH_START_ITERATIONS)
         dev = normals.device
         h, w = m.shape
         lam_h = 2.0 - 2.0 * torch.cos(math.pi * torch.arange(h, dtype=torch.float64) / h)
