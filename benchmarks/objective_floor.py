@@ -1,0 +1,132 @@
+"""Is the remaining error the optimiser's basin or the model's objective? Solves started from the TRUE normals.
+
+The per-pixel solver keeps the basin it starts in (docs/photometric_stereo.md, "Limits"). This script
+asks, per scene of the issue-21 suite, whether a better start could help at all:
+
+1. ``default``: :func:`torch_hsh.ps.solve_hsh` at its defaults (solver seed 0).
+2. ``truth start``: the same solve with ``init`` = the ground-truth normals and ``calibration_starts =
+   ("lambertian",)``, so both the calibration of the basis BRDFs and the per-pixel pass start from the
+   truth. Its error is what the model's objective holds when the optimiser is given the right basin.
+3. ``default basis, truth pixels``: the basis BRDFs and robust scale of (1), the per-pixel pass started
+   from the truth. It separates the basis from the per-pixel basins.
+
+For (1) and (2) it evaluates the solver's own objective on every pixel: the Cauchy loss
+``sum_l w0 log(1 + (r / (c s))^2)`` of the residuals after three IRLS passes of the closed-form mixing
+weights (the criterion that chooses between calibration starts, here over all pixels), at one scale ``s``
+(the smaller of the two solves' robust scales). The mean over the pixels is printed.
+
+Reading: if the truth-start solve has the *lower* loss, the objective is right and the error of the
+default is a search problem (a better start or search could gain up to the truth-start error). If it has
+the *higher* loss, the objective itself prefers worse normals: no start or search on this objective can
+reach the truth-start error, and only a better model (interreflections, cast shadows) can.
+
+Usage:
+    python benchmarks/objective_floor.py --shared ../shared/data       # the suite (bench_suite.py)
+    python benchmarks/objective_floor.py --only diligent_harvest --shared ../shared/data
+    python benchmarks/objective_floor.py --quick                       # CI: the quick scenes
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import suite as suite_mod  # noqa: E402
+
+
+def solution_loss(obs, basis: torch.Tensor, normals: torch.Tensor, scale: float, order: int, c: float,
+                  chunk: int = 4096) -> torch.Tensor:
+    """Per-pixel Cauchy loss ``(P,)`` of the shared model at ``basis (M, K)`` and ``normals (P, 3)``.
+
+    ``obs`` is the solver's :class:`~torch_hsh.ps.observations.Observations` (unit brightness); ``scale``
+    is in the same units. Three IRLS passes of the mixing weights from the observation weights, as the
+    calibration's choice between starts does.
+    """
+    from torch_hsh.ps.design import MixedDesign
+    from torch_hsh.ps.optim import irls_weights
+
+    y, w0 = obs.data.y.double(), obs.weights.double()
+    des = MixedDesign(basis.double(), obs.data.lights.double(), order)
+    out = []
+    for s in range(0, normals.shape[0], chunk):
+        sl = slice(s, s + chunk)
+        _, res = irls_weights(des(normals[sl].double()), y[sl].transpose(1, 2), w0[sl].clone(), w0[sl], scale, c, 3)
+        out.append((w0[sl] * torch.log1p((res / (c * scale)) ** 2)).sum(-1))
+    return torch.cat(out)
+
+
+def scene_row(d, seed: int = 0, **solve_kw) -> dict:
+    """The three solves of the module docstring on one loaded scene ``d``, their errors (deg) and losses.
+
+    ``solve_kw``: further options of every solve (for example ``order=4`` or ``materials=3``)."""
+    from torch_hsh import ps
+    from torch_hsh.ps.calibration import reuse_calibration
+    from torch_hsh.ps.observations import observe
+    from torch_hsh.ps.settings import Settings
+
+    gt, mask = d.normals_gt.to(torch.float64), d.mask
+    images, lights, inten = d.images, d.lights, None  # as the suite loads them (bench_suite.py)
+
+    def err(r) -> float:
+        return float(ps.angular_error(r.normals.double(), gt, mask)[mask].mean())
+
+    t = time.perf_counter()
+    r_def = ps.solve_hsh(images, lights, inten, mask, seed=seed, **solve_kw)
+    r_gt = ps.solve_hsh(images, lights, inten, mask, seed=seed, init=gt, calibration_starts=("lambertian",), **solve_kw)
+    r_px = ps.solve_hsh(images, lights, inten, mask, seed=seed, init=gt, **{**solve_kw, **reuse_calibration(r_def)})
+    cfg = Settings(**solve_kw)
+    obs = observe(images, lights, inten, mask, cfg)
+    # the results' robust scales are in the images' units; the observations are at unit brightness
+    scale = min(r_def.info["robust_scale"], r_gt.info["robust_scale"]) / obs.scale
+    loss = {k: float(solution_loss(obs, r.basis_brdfs, r.normals[mask], scale, cfg.order, cfg.cauchy_c).mean())
+            for k, r in (("default", r_def), ("truth start", r_gt))}
+    return {
+        "default": err(r_def), "truth start": err(r_gt), "default basis, truth pixels": err(r_px),
+        "loss default": loss["default"], "loss truth start": loss["truth start"],
+        "time_s": time.perf_counter() - t,
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="the suite's quick scenes (bench_suite.py --quick)")
+    ap.add_argument("--shared", default=None, help="folder of the shared captures (default ../shared/data)")
+    ap.add_argument("--only", nargs="+", default=None, help="these scenes only (names of suite.py)")
+    ap.add_argument("--seed", type=int, default=0, help="solver seed (the calibration subset)")
+    ap.add_argument("--order", type=int, default=None, help="solve_hsh(order=...) of every solve (default: the library's)")
+    ap.add_argument("--materials", type=int, default=None,
+                    help="solve_hsh(materials=...) of every solve (default: the library's)")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args(argv)
+    solve_kw = {k: v for k, v in (("order", args.order), ("materials", args.materials)) if v is not None}
+    torch.set_num_threads(args.threads)
+    from torch_hsh.io.diligent import load_diligent
+
+    scenes = suite_mod.QUICK if args.quick else suite_mod.SUITE
+    if args.only:
+        unknown = sorted(set(args.only) - {s.name for s in scenes})
+        if unknown:
+            ap.error(f"--only: unknown scene(s) {unknown}; known: {[s.name for s in scenes]}")
+        scenes = [s for s in scenes if s.name in args.only]
+    shared = Path(args.shared) if args.shared else (None if args.quick else suite_mod.default_shared())
+    print("| scene | default | truth start | default basis, truth pixels | loss default | loss truth start "
+          "| objective prefers | time |\n|---|---|---|---|---|---|---|---|", flush=True)
+    for sc in scenes:
+        folder, why = suite_mod.available_folder(sc, shared=shared)
+        d = None if folder is None else load_diligent(folder, dtype=torch.float32)
+        if d is None or d.normals_gt is None:
+            print(f"| {sc.name} | skipped ({why or 'no ground-truth normals'}) |", flush=True)
+            continue
+        r = scene_row(d, args.seed, **solve_kw)
+        verdict = "truth start" if r["loss truth start"] < r["loss default"] else "default"
+        print(f"| {sc.name} | {r['default']:.2f} | {r['truth start']:.2f} | {r['default basis, truth pixels']:.2f} "
+              f"| {r['loss default']:.4f} | {r['loss truth start']:.4f} | {verdict} | {r['time_s']:.0f} s |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
