@@ -6,24 +6,28 @@ asks, per scene of the issue-21 suite, whether a better start could help at all:
 1. ``default``: :func:`torch_hsh.ps.solve_hsh` at its defaults (solver seed 0).
 2. ``truth start``: the same solve with ``init`` = the ground-truth normals and ``calibration_starts =
    ("lambertian",)``, so both the calibration of the basis BRDFs and the per-pixel pass start from the
-   truth. Its error is what the model's objective holds when the optimiser is given the right basin.
+   truth (an oracle: it uses the ground truth). Its error is what the model's objective holds when the
+   optimiser is given the truth's basin.
 3. ``default basis, truth pixels``: the basis BRDFs and robust scale of (1), the per-pixel pass started
    from the truth. It separates the basis from the per-pixel basins.
 
-For (1) and (2) it evaluates the solver's own objective on every pixel: the Cauchy loss
+For each solve it evaluates the solver's own objective on every pixel: the Cauchy loss
 ``sum_l w0 log(1 + (r / (c s))^2)`` of the residuals after three IRLS passes of the closed-form mixing
-weights (the criterion that chooses between calibration starts, here over all pixels), at one scale ``s``
-(the smaller of the two solves' robust scales). The mean over the pixels is printed.
+weights. That is the criterion by which the calibration chooses between its starts (``calibration_losses``),
+here over all pixels, at one scale ``s``: the smaller of the robust scales of (1) and (2), as the solver
+uses them (floored at the noise level; the calibration's choice uses the unfloored ones). The mean over
+the pixels is printed.
 
 Reading: if the truth-start solve has the *lower* loss, the objective is right and the error of the
-default is a search problem (a better start or search could gain up to the truth-start error). If it has
-the *higher* loss, the objective itself prefers worse normals: no start or search on this objective can
-reach the truth-start error, and only a better model (interreflections, cast shadows) can.
+default is a search problem: a better start or search could gain up to the truth-start error. If it has
+the *higher* loss, the objective itself prefers the default's worse normals, so a search led by this loss
+does not lead to the truth's basin. Only a better model (interreflections, cast shadows, the surface)
+can. The comparison is between two local minima, each with its own basis, at one solver seed.
 
 Usage:
     python benchmarks/objective_floor.py --shared ../shared/data       # the suite (bench_suite.py)
-    python benchmarks/objective_floor.py --only diligent_harvest --shared ../shared/data
-    python benchmarks/objective_floor.py --quick                       # CI: the quick scenes
+    python benchmarks/objective_floor.py --only diligent_harvest --shared ../shared/data --materials 3
+    python benchmarks/objective_floor.py --quick --only bumpy_shadows  # CI: a 32² synthetic scene
 """
 from __future__ import annotations
 
@@ -75,32 +79,39 @@ def scene_row(d, seed: int = 0, **solve_kw) -> dict:
         return float(ps.angular_error(r.normals.double(), gt, mask)[mask].mean())
 
     t = time.perf_counter()
-    r_def = ps.solve_hsh(images, lights, inten, mask, seed=seed, **solve_kw)
+    r_def = ps.solve_hsh(images, lights, inten, mask, seed=seed, **solve_kw)  # 1, 2 and 3 of the docstring
     r_gt = ps.solve_hsh(images, lights, inten, mask, seed=seed, init=gt, calibration_starts=("lambertian",), **solve_kw)
     r_px = ps.solve_hsh(images, lights, inten, mask, seed=seed, init=gt, **{**solve_kw, **reuse_calibration(r_def)})
     cfg = Settings(**solve_kw)
     obs = observe(images, lights, inten, mask, cfg)
-    # the results' robust scales are in the images' units; the observations are at unit brightness
+    # the results' robust scales are in the images' units (x image_scale); the observations are at unit brightness
     scale = min(r_def.info["robust_scale"], r_gt.info["robust_scale"]) / obs.scale
     loss = {k: float(solution_loss(obs, r.basis_brdfs, r.normals[mask], scale, cfg.order, cfg.cauchy_c).mean())
-            for k, r in (("default", r_def), ("truth start", r_gt))}
+            for k, r in (("default", r_def), ("truth start", r_gt), ("default basis, truth pixels", r_px))}
     return {
         "default": err(r_def), "truth start": err(r_gt), "default basis, truth pixels": err(r_px),
-        "loss default": loss["default"], "loss truth start": loss["truth start"],
-        "time_s": time.perf_counter() - t,
+        **{f"loss {k}": v for k, v in loss.items()},
+        "scale": scale, "time_s": time.perf_counter() - t,
     }
 
 
+def _render_progress(msg: str) -> None:
+    """Progress of a Mitsuba render (only when a scene is not cached), on stderr."""
+    print(f"    rendering {msg}", file=sys.stderr, flush=True)
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("Reading: ")[1].split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="the suite's quick scenes (bench_suite.py --quick)")
     ap.add_argument("--shared", default=None, help="folder of the shared captures (default ../shared/data)")
     ap.add_argument("--only", nargs="+", default=None, help="these scenes only (names of suite.py)")
     ap.add_argument("--seed", type=int, default=0, help="solver seed (the calibration subset)")
-    ap.add_argument("--order", type=int, default=None, help="solve_hsh(order=...) of every solve (default: the library's)")
-    ap.add_argument("--materials", type=int, default=None,
-                    help="solve_hsh(materials=...) of every solve (default: the library's)")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--order", type=int, default=None, choices=range(1, 9), metavar="P",
+                    help="solve_hsh(order=P), 1-8, of every solve (default: the library's)")
+    ap.add_argument("--materials", type=int, default=None, choices=range(1, 9), metavar="M",
+                    help="solve_hsh(materials=M), 1-8, of every solve (default: the library's)")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads of the solves and of Mitsuba renders")
     args = ap.parse_args(argv)
     solve_kw = {k: v for k, v in (("order", args.order), ("materials", args.materials)) if v is not None}
     torch.set_num_threads(args.threads)
@@ -114,9 +125,10 @@ def main(argv=None) -> int:
         scenes = [s for s in scenes if s.name in args.only]
     shared = Path(args.shared) if args.shared else (None if args.quick else suite_mod.default_shared())
     print("| scene | default | truth start | default basis, truth pixels | loss default | loss truth start "
-          "| objective prefers | time |\n|---|---|---|---|---|---|---|---|", flush=True)
+          "| loss default basis, truth pixels | objective prefers | time |\n|---|---|---|---|---|---|---|---|---|",
+          flush=True)
     for sc in scenes:
-        folder, why = suite_mod.available_folder(sc, shared=shared)
+        folder, why = suite_mod.available_folder(sc, shared=shared, threads=args.threads, progress=_render_progress)
         d = None if folder is None else load_diligent(folder, dtype=torch.float32)
         if d is None or d.normals_gt is None:
             print(f"| {sc.name} | skipped ({why or 'no ground-truth normals'}) |", flush=True)
@@ -124,7 +136,8 @@ def main(argv=None) -> int:
         r = scene_row(d, args.seed, **solve_kw)
         verdict = "truth start" if r["loss truth start"] < r["loss default"] else "default"
         print(f"| {sc.name} | {r['default']:.2f} | {r['truth start']:.2f} | {r['default basis, truth pixels']:.2f} "
-              f"| {r['loss default']:.4f} | {r['loss truth start']:.4f} | {verdict} | {r['time_s']:.0f} s |", flush=True)
+              f"| {r['loss default']:.4f} | {r['loss truth start']:.4f} | {r['loss default basis, truth pixels']:.4f} "
+              f"| {verdict} | {r['time_s']:.0f} s |", flush=True)
     return 0
 
 
