@@ -465,6 +465,31 @@ def test_leading_shapes_and_broadcasting():
     assert helmholtz_isotropic_cosines(c.reshape(2, 1), c, torch.tensor(0.2, dtype=F64), 2).shape == (2, 2, 10)
 
 
+def test_flat_rows_broadcast_and_keep_no_views(backend):
+    # one row dimension: an input that broadcasts (even when its 3 components equal the row count) is expanded,
+    # and its gradient sums over the rows; an input that is already (N, 3) goes to the kernel as it is, with no
+    # view node between the leaf and the basis's own autograd node
+    wi = _hemi(3, seed=35).requires_grad_(True)
+    wo = _hemi(1, seed=36)[0].clone().requires_grad_(True)  # (3,): broadcasts against (3, 3)
+    B = helmholtz_isotropic(wi, wo, 2)
+    ref = helmholtz_isotropic(wi.detach(), wo.detach().expand(3, 3), 2)
+    torch.testing.assert_close(B.detach(), ref)
+    B.sum().backward()
+    wo2 = wo.detach().expand(3, 3).clone().requires_grad_(True)
+    helmholtz_isotropic(wi.detach(), wo2, 2).sum().backward()
+    torch.testing.assert_close(wo.grad, wo2.grad.sum(0))
+    c = torch.tensor([0.3, 0.5, 0.7], dtype=F64)
+    torch.testing.assert_close(helmholtz_isotropic_cosines(c, torch.tensor(0.4, dtype=F64), c, 2),
+                               helmholtz_isotropic_cosines(c, torch.full((3,), 0.4, dtype=F64), c, 2))
+    leaf = _hemi(8, seed=37).requires_grad_(True)
+    if not torch_hsh.kernel._native_ok(leaf):  # the torch kernels work feature-major: their nodes differ
+        return
+    out = helmholtz_isotropic(leaf, _hemi(8, seed=38), 2)
+    assert out.grad_fn.next_functions[0][0].variable is leaf  # no ViewBackward between them
+    out = hsh(leaf, 2)
+    assert out.grad_fn.next_functions[0][0].variable is leaf
+
+
 def test_empty_batch():
     e = torch.zeros(0, 3, requires_grad=True)
     assert hsh(e, 3).shape == (0, 16)

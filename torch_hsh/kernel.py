@@ -440,13 +440,27 @@ def _iso_kernel_t(zi, zo, a, rho, sio, valid, order: int, same: bool = False) ->
     )
 
 
+def _flat(x: torch.Tensor, lead, tail=(3,)) -> torch.Tensor:
+    """``x`` broadcast to ``(*lead, *tail)`` and flattened to ``(N, *tail)``, without a view where ``x`` already
+    has that shape: a view of a tensor that requires grad costs an autograd node forward and backward (several
+    microseconds per call at small batches)."""
+    tail = tuple(tail)
+    if tuple(x.shape) != (*lead, *tail):
+        x = x.expand(*lead, *tail)
+    return x if len(lead) == 1 else x.reshape(-1, *tail)
+
+
+def _shaped(out: torch.Tensor, lead, K: int) -> torch.Tensor:
+    """``out (N, K)`` as ``(*lead, K)``, without a view where it already is."""
+    return out if out.shape[:-1] == lead else out.reshape(*lead, K)
+
+
 def _broadcast_pair(wi: torch.Tensor, wo: torch.Tensor):
     if wi.shape == wo.shape:  # the common case, without torch.broadcast_shapes (tens of microseconds)
-        return wi.shape[:-1], wi.reshape(-1, 3), wo.reshape(-1, 3)
+        lead = wi.shape[:-1]
+        return lead, _flat(wi, lead), _flat(wo, lead)
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
-    wi = wi.expand(*lead, 3).reshape(-1, 3)
-    wo = wo.expand(*lead, 3).reshape(-1, 3)
-    return lead, wi, wo
+    return lead, _flat(wi, lead), _flat(wo, lead)
 
 
 def _iso_dirs(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
@@ -1144,14 +1158,14 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
     order = check_order(order)
     lead = dirs.shape[:-1]
     K = (order + 1) ** 2
-    flat = dirs.reshape(-1, 3)
+    flat = _flat(dirs, lead)
     if _native_ok(flat):
         out = _HshNative.apply(flat, order)  # checks the values that the kernel flags
     elif _hsh_fast_ok(flat):
         out = _hsh_sphericart(flat, order)
     else:
         out = _run_rows(lambda d: _hsh_flat_t(d, order), K, flat)
-    return out.reshape(*lead, K)
+    return _shaped(out, lead, K)
 
 
 def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
@@ -1195,8 +1209,8 @@ def _pair_basis(wi, wo, K, native, flat):
     flat rows where :func:`_native_ok`, else ``flat(a, b)`` in row chunks. One direction set (``wi is wo``) is
     passed as the same tensor twice, so that a kernel computes its tables once."""
     if wi is wo:
-        lead, a = wi.shape[:-1], wi.reshape(-1, 3)
-        b = a
+        lead = wi.shape[:-1]
+        a = b = _flat(wi, lead)
     else:
         lead, a, b = _broadcast_pair(wi, wo)
     if _native_ok(wi):
@@ -1205,7 +1219,7 @@ def _pair_basis(wi, wo, K, native, flat):
         out = _run_rows(lambda w: flat(w, w), K, a)
     else:
         out = _run_rows(flat, K, a, b)
-    return out.reshape(*lead, K)
+    return _shaped(out, lead, K)
 
 
 def helmholtz_isotropic_cosines(
@@ -1232,13 +1246,13 @@ def helmholtz_isotropic_cosines(
     _check_group([("cos_i", cos_i), ("cos_o", cos_o), ("cos_dphi", cos_dphi)], dirs=False)
     order = check_order(order)
     lead = broadcast_shapes([("cos_i", cos_i.shape), ("cos_o", cos_o.shape), ("cos_dphi", cos_dphi.shape)])
-    zi, zo, cd = (t.expand(lead).reshape(-1) for t in (cos_i, cos_o, cos_dphi))
+    zi, zo, cd = (_flat(t, lead, ()) for t in (cos_i, cos_o, cos_dphi))
     K = (order + 1) * (order + 2) * (order + 3) // 6
     if _native_ok(zi):
         out = _IsoCore.apply(*_iso_cosines_geom(zi, zo, cd), order)
     else:
         out = _run_rows(lambda a, b, c: _iso_cosines_flat(a, b, c, order), K, zi, zo, cd)
-    return out.reshape(*lead, K)
+    return _shaped(out, lead, K)
 
 
 def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
@@ -1309,13 +1323,13 @@ def helmholtz_isotropic_world(
     _check_group([("wi", wi), ("wo", wo), ("normal", normal)])
     order = check_order(order)
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1]), ("normal", normal.shape[:-1])])
-    wi, wo, nrm = (t.expand(*lead, 3).reshape(-1, 3) for t in (wi, wo, normal))
+    wi, wo, nrm = (_flat(t, lead) for t in (wi, wo, normal))
     K = (order + 1) * (order + 2) * (order + 3) // 6
     if _native_ok(wi):
         out = _IsoCore.apply(*_iso_world_geom(wi, wo, nrm), order)
     else:
         out = _run_rows(lambda a, b, c: _iso_world_flat(a, b, c, order), K, wi, wo, nrm)
-    return out.reshape(*lead, K)
+    return _shaped(out, lead, K)
 
 
 def _normalize3(d: torch.Tensor) -> torch.Tensor:
