@@ -63,9 +63,34 @@ def solution_loss(obs, basis: torch.Tensor, normals: torch.Tensor, scale: float,
     return torch.cat(out)
 
 
-def scene_row(d, seed: int = 0, **solve_kw) -> dict:
+def surface_loss(obs, basis: torch.Tensor, normals: torch.Tensor, mask: torch.Tensor, scale: float, order: int,
+                 c: float, bias: float) -> float:
+    """Mean per-pixel loss of the whole-surface stage's objective at the surface of ``normals (H, W, 3)``.
+
+    As in :func:`torch_hsh.ps.refine_surface`: the bilateral depth of the normals (the stage's start,
+    :func:`torch_hsh.ps._geometry.start_depth`), the normals of that depth (discontinuity-weighted differences),
+    and the observation weights times that depth's cast shadows (:func:`torch_hsh.surface.light_visibility`,
+    ``bias`` pixels); then :func:`solution_loss` with ``basis``.
+    """
+    from types import SimpleNamespace
+
+    from torch_hsh.ps import whole_surface as ws
+    from torch_hsh.ps._geometry import start_depth
+    from torch_hsh.surface import light_visibility
+
+    box, z = start_depth(normals.to(torch.float64), mask)
+    mb = mask[box].cpu()
+    n = ws.depth_normals(z, mb, ws.discontinuity_weights(z, mb))[mb]
+    vis = light_visibility(z, mb, obs.data.lights.detach().to(torch.float64).cpu(), bias=bias).permute(1, 2, 0)[mb]
+    shadowed = SimpleNamespace(data=obs.data, weights=obs.weights.double() * vis.to(obs.weights.device).double())
+    return float(solution_loss(shadowed, basis, n.to(obs.data.y.device), scale, order, c).mean())
+
+
+def scene_row(d, seed: int = 0, surface: bool = False, **solve_kw) -> dict:
     """The three solves of the module docstring on one loaded scene ``d``, their errors (deg) and losses.
 
+    ``surface``: also the whole-surface stage's loss (:func:`surface_loss`, the default basis, which the stage
+    keeps) at the surfaces of the default solve, of the truth-start solve and of the true normals.
     ``solve_kw``: further options of every solve (for example ``order=4`` or ``materials=3``)."""
     from torch_hsh import ps
     from torch_hsh.ps.calibration import reuse_calibration
@@ -88,11 +113,17 @@ def scene_row(d, seed: int = 0, **solve_kw) -> dict:
     scale = min(r_def.info["robust_scale"], r_gt.info["robust_scale"]) / obs.scale
     loss = {k: float(solution_loss(obs, r.basis_brdfs, r.normals[mask], scale, cfg.order, cfg.cauchy_c).mean())
             for k, r in (("default", r_def), ("truth start", r_gt), ("default basis, truth pixels", r_px))}
-    return {
+    out = {
         "default": err(r_def), "truth start": err(r_gt), "default basis, truth pixels": err(r_px),
         **{f"loss {k}": v for k, v in loss.items()},
-        "scale": scale, "time_s": time.perf_counter() - t,
+        "scale": scale,
     }
+    if surface:
+        for k, n in (("default", r_def.normals), ("truth start", r_gt.normals), ("truth", gt)):
+            out[f"surface loss {k}"] = surface_loss(obs, r_def.basis_brdfs, n, mask, scale, cfg.order, cfg.cauchy_c,
+                                                    cfg.shadow_bias)
+    out["time_s"] = time.perf_counter() - t
+    return out
 
 
 def _render_progress(msg: str) -> None:
@@ -111,6 +142,12 @@ def main(argv=None) -> int:
                     help="solve_hsh(order=P), 1-8, of every solve (default: the library's)")
     ap.add_argument("--materials", type=int, default=None, choices=range(1, 9), metavar="M",
                     help="solve_hsh(materials=M), 1-8, of every solve (default: the library's)")
+    ap.add_argument("--interreflections", action="store_true",
+                    help="first remove one bounce of interreflection (the solver's round, solve_hsh(interreflections=1)) "
+                         "and run everything on the corrected images")
+    ap.add_argument("--surface", action="store_true",
+                    help="three more columns: the whole-surface stage's loss (default basis, each depth's cast shadows) "
+                         "at the surfaces of the default solve, the truth-start solve and the true normals")
     ap.add_argument("--threads", type=int, default=2, help="torch threads of the solves and of Mitsuba renders")
     args = ap.parse_args(argv)
     solve_kw = {k: v for k, v in (("order", args.order), ("materials", args.materials)) if v is not None}
@@ -124,20 +161,38 @@ def main(argv=None) -> int:
             ap.error(f"--only: unknown scene(s) {unknown}; known: {[s.name for s in scenes]}")
         scenes = [s for s in scenes if s.name in args.only]
     shared = Path(args.shared) if args.shared else (None if args.quick else suite_mod.default_shared())
-    print("| scene | default | truth start | default basis, truth pixels | loss default | loss truth start "
-          "| loss default basis, truth pixels | objective prefers | time |\n|---|---|---|---|---|---|---|---|---|",
-          flush=True)
+    cols = ["default", "truth start", "default basis, truth pixels", "loss default", "loss truth start",
+            "loss default basis, truth pixels", "objective prefers"]
+    if args.surface:
+        cols += ["surface loss default", "surface loss truth start", "surface loss truth"]
+    if args.interreflections:
+        cols += ["bounce (% of the light)"]
+    cols += ["time"]
+    print("| scene | " + " | ".join(cols) + " |\n|" + "---|" * (len(cols) + 1), flush=True)
     for sc in scenes:
         folder, why = suite_mod.available_folder(sc, shared=shared, threads=args.threads, progress=_render_progress)
         d = None if folder is None else load_diligent(folder, dtype=torch.float32)
         if d is None or d.normals_gt is None:
             print(f"| {sc.name} | skipped ({why or 'no ground-truth normals'}) |", flush=True)
             continue
-        r = scene_row(d, args.seed, **solve_kw)
+        extra = []
+        if args.interreflections:  # the solver's round: solve, one bounce from its surface, subtract it
+            from torch_hsh.ps.interreflections import interreflection_loop
+            from torch_hsh.ps.pipeline import run_stages
+            from torch_hsh.ps.settings import Settings
+
+            res, images, _ = interreflection_loop(run_stages, d.images, d.lights, None, d.mask,
+                                                  Settings(interreflections=1, seed=args.seed, **solve_kw))
+            d.images = images
+            kept = "kept" if res.info.get("interreflection_rounds", 0) else "rejected: images unchanged"
+            extra = [f"{100 * res.info.get('interreflection_fraction', float('nan')):.2f} ({kept})"]
+        r = scene_row(d, args.seed, surface=args.surface, **solve_kw)
         verdict = "truth start" if r["loss truth start"] < r["loss default"] else "default"
-        print(f"| {sc.name} | {r['default']:.2f} | {r['truth start']:.2f} | {r['default basis, truth pixels']:.2f} "
-              f"| {r['loss default']:.4f} | {r['loss truth start']:.4f} | {r['loss default basis, truth pixels']:.4f} "
-              f"| {verdict} | {r['time_s']:.0f} s |", flush=True)
+        cells = [f"{r[k]:.2f}" for k in cols[:3]] + [f"{r[k]:.4f}" for k in cols[3:6]] + [verdict]
+        if args.surface:
+            cells += [f"{r[k]:.4f}" for k in ("surface loss default", "surface loss truth start", "surface loss truth")]
+        cells += extra + [f"{r['time_s']:.0f} s"]
+        print(f"| {sc.name} | " + " | ".join(cells) + " |", flush=True)
     return 0
 
 

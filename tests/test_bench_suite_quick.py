@@ -109,6 +109,52 @@ def test_objective_floor_quick(tmp_path, monkeypatch):
     assert m.group(7) == ("truth start" if loss_truth < loss_def else "default")
 
 
+def test_objective_floor_quick_surface_and_interreflections(tmp_path, monkeypatch):
+    # --surface adds the whole-surface losses, --interreflections runs on the corrected images and reports the bounce
+    monkeypatch.setenv("TORCH_HSH_CACHE", str(tmp_path / "cache"))
+    r = run_script("benchmarks/objective_floor.py", "--quick", "--only", "bumpy_shadows", "--threads", "1",
+                   "--surface", "--interreflections")
+    assert "| surface loss default | surface loss truth start | surface loss truth | bounce (% of the light) | time |" \
+        in r.stdout, r.stdout
+    m = re.search(r"^\| bumpy_shadows \| " + rf"{NUM} \| " * 6 + rf"(?:truth start|default) \| {NUM} \| {NUM} \| {NUM} \| "
+                  rf"{NUM} \((kept|rejected: images unchanged)\) \| {NUM} s \|$", r.stdout, re.M)
+    assert m, r.stdout
+    surf = [float(m.group(i)) for i in (7, 8, 9)]
+    assert all(v > 0 for v in surf), surf
+    assert 0 <= float(m.group(10)) < 50  # this field has an ambient term and cast shadows: a few % of the light
+
+
+def test_objective_floor_surface_loss_of_a_plane():
+    # a tilted plane: its own depth gives its normals back and casts no shadow, so the surface loss is the
+    # per-pixel loss at the plane's normals
+    import sys
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from objective_floor import solution_loss, surface_loss
+
+    from torch_hsh import num_isotropic
+    from torch_hsh.ps.design import MixedDesign
+    from torch_hsh.ps.optim import combine
+
+    g = torch.Generator().manual_seed(5)
+    H = W = 12
+    mask = torch.ones(H, W, dtype=torch.bool)
+    n = torch.nn.functional.normalize(torch.tensor([0.2, -0.1, 1.0], dtype=torch.float64), dim=0).expand(H, W, 3)
+    lights = torch.nn.functional.normalize(torch.randn(10, 3, generator=g, dtype=torch.float64) * 0.3
+                                           + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), dim=-1)
+    B = torch.randn(2, num_isotropic(2), generator=g, dtype=torch.float64)
+    B[:, 0] += 4.0
+    W_ = torch.rand(H * W, 2, 3, generator=g, dtype=torch.float64) + 0.5
+    y = combine(W_, MixedDesign(B, lights, 2)(n.reshape(-1, 3))).transpose(1, 2)
+    y = y + 0.01 * torch.randn(y.shape, generator=g, dtype=torch.float64)  # a residual, so the loss is not ~0
+    obs = SimpleNamespace(data=SimpleNamespace(y=y, lights=lights), weights=torch.ones(H * W, 10, dtype=torch.float64))
+    want = float(solution_loss(obs, B, n.reshape(-1, 3), 0.05, 2, 2.385).mean())
+    assert want > 1e-3
+    assert surface_loss(obs, B, n, mask, 0.05, 2, 2.385, 0.25) == pytest.approx(want, rel=1e-6)
+
+
 def _small_scene():
     from types import SimpleNamespace
 
