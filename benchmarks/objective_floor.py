@@ -28,6 +28,10 @@ Usage:
     python benchmarks/objective_floor.py --shared ../shared/data       # the suite (bench_suite.py)
     python benchmarks/objective_floor.py --only diligent_harvest --shared ../shared/data --materials 3
     python benchmarks/objective_floor.py --quick --only bumpy_shadows  # CI: a 32² synthetic scene
+    python benchmarks/objective_floor.py --only diligent_harvest --shared ../shared/data --surface --interreflections
+
+``--surface`` adds the whole-surface stage's own loss (:func:`surface_loss`) at three surfaces, and
+``--interreflections`` runs everything on the images after the solver's one-bounce round.
 """
 from __future__ import annotations
 
