@@ -633,6 +633,35 @@ def test_chunked_path_gradients(tiny_chunks):
     assert torch.autograd.gradgradcheck(lambda a: hsh(a, 2), (x,))
 
 
+def test_chunked_create_graph_with_shared_inputs(tiny_chunks):
+    # the caller's own tensors reach the chunked kernel: an input passed twice, or computed from another, must
+    # not count the first derivative twice in a create_graph backward (the docstrings' own patterns)
+    c = torch.linspace(0.1, 0.9, 6, dtype=F64, requires_grad=True)
+    d = torch.zeros(6, dtype=F64)
+    w = _hemi(6, seed=47).requires_grad_(True)
+    n = torch.nn.functional.normalize(_hemi(6, seed=48) + torch.tensor([0.0, 0.0, 2.0], dtype=F64), dim=-1)
+    n.requires_grad_(True)
+    cases = [
+        (lambda: helmholtz_isotropic_cosines(c, c, d, 3), (c,)),
+        (lambda: helmholtz_isotropic_world(w, n, n, 2), (w, n)),
+        (lambda: helmholtz_isotropic(w, w * torch.tensor([-1.0, -1.0, 1.0], dtype=F64), 2), (w,)),
+    ]
+    for make, xs in cases:
+        plain = torch.autograd.grad(make().sum(), xs)
+        graph = torch.autograd.grad(make().sum(), xs, create_graph=True)
+        for a, b in zip(graph, plain):
+            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+def test_trace_keeps_the_shape_ops(backend):
+    # a trace taken at (N, 3) and called at another rank fails loudly (its shapes are constants), never silently
+    d = _hemi(5, seed=49)
+    f = torch.jit.trace(lambda x: hsh(x, 2), (d,), check_trace=False)
+    torch.testing.assert_close(f(d), hsh(d, 2))
+    with pytest.raises(RuntimeError):
+        f(_hemi(8, seed=50).reshape(2, 4, 3))
+
+
 def test_gradgradcheck_plain_path():
     x = _hemi(3, seed=45).requires_grad_(True)
     y = _hemi(3, seed=46).requires_grad_(True)

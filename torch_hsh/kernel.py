@@ -445,14 +445,14 @@ def _flat(x: torch.Tensor, lead, tail=(3,)) -> torch.Tensor:
     has that shape: a view of a tensor that requires grad costs an autograd node forward and backward (several
     microseconds per call at small batches)."""
     tail = tuple(tail)
-    if tuple(x.shape) != (*lead, *tail):
+    if tuple(x.shape) != (*lead, *tail) or torch.jit.is_tracing():  # a trace records the shape ops for any rank
         x = x.expand(*lead, *tail)
-    return x if len(lead) == 1 else x.reshape(-1, *tail)
+    return x if len(lead) == 1 and not torch.jit.is_tracing() else x.reshape(-1, *tail)
 
 
 def _shaped(out: torch.Tensor, lead, K: int) -> torch.Tensor:
     """``out (N, K)`` as ``(*lead, K)``, without a view where it already is."""
-    return out if out.shape[:-1] == lead else out.reshape(*lead, K)
+    return out if out.shape[:-1] == lead and not torch.jit.is_tracing() else out.reshape(*lead, K)
 
 
 def _broadcast_pair(wi: torch.Tensor, wo: torch.Tensor):
@@ -576,7 +576,8 @@ class _RowChunked(torch.autograd.Function):
         if not want:
             return (None, None, None, *grads)
         if torch.is_grad_enabled():  # create_graph=True: keep the backward differentiable
-            xs = [x if needs[i] else x.detach() for i, x in enumerate(inputs)]
+            # aliases: an input may be another input, or computed from one (the caller's own tensors reach here)
+            xs = [x if needs[i] else x.detach() for i, x in enumerate(_aliases(inputs))]
             y = fn(*xs)
             if not y.requires_grad:  # a kernel constant in its inputs (order 0): zero gradients
                 return (None, None, None, *[torch.zeros_like(x) if i in want else None for i, x in enumerate(inputs)])
