@@ -444,10 +444,10 @@ def _flat(x: torch.Tensor, lead, tail=(3,)) -> torch.Tensor:
     """``x`` broadcast to ``(*lead, *tail)`` and flattened to ``(N, *tail)``, without a view where ``x`` already
     has that shape: a view of a tensor that requires grad costs an autograd node forward and backward (several
     microseconds per call at small batches)."""
-    tail = tuple(tail)
-    if tuple(x.shape) != (*lead, *tail) or torch.jit.is_tracing():  # a trace records the shape ops for any rank
+    tail, tracing = tuple(tail), torch.jit.is_tracing()  # a trace records the shape ops, for any rank
+    if tracing or tuple(x.shape) != (*lead, *tail):
         x = x.expand(*lead, *tail)
-    return x if len(lead) == 1 and not torch.jit.is_tracing() else x.reshape(-1, *tail)
+    return x if len(lead) == 1 and not tracing else x.reshape(-1, *tail)
 
 
 def _shaped(out: torch.Tensor, lead, K: int) -> torch.Tensor:
@@ -456,10 +456,8 @@ def _shaped(out: torch.Tensor, lead, K: int) -> torch.Tensor:
 
 
 def _broadcast_pair(wi: torch.Tensor, wo: torch.Tensor):
-    if wi.shape == wo.shape:  # the common case, without torch.broadcast_shapes (tens of microseconds)
-        lead = wi.shape[:-1]
-        return lead, _flat(wi, lead), _flat(wo, lead)
-    lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
+    # equal shapes are the common case, without torch.broadcast_shapes (tens of microseconds)
+    lead = wi.shape[:-1] if wi.shape == wo.shape else broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1])])
     return lead, _flat(wi, lead), _flat(wo, lead)
 
 
