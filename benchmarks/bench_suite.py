@@ -69,11 +69,6 @@ _STAGE_KEYS = {"per-pixel": "per-pixel", "per-pixel + cast_shadows=1": "shadows"
                "+interreflection +surface +shadows": "interreflection-surface"}
 
 
-def _render_progress(msg: str) -> None:
-    """Progress of a Mitsuba render (only when a scene is not cached), on stderr."""
-    print(f"    rendering {msg}", file=sys.stderr, flush=True)
-
-
 def _fmt(x: Optional[float], nd: int = 2) -> str:
     return "n/a" if x is None else f"{x:.{nd}f}"
 
@@ -142,7 +137,7 @@ def main(argv=None):
     for sc in scenes:
         t0 = time.perf_counter()
         folder, why = suite_mod.available_folder(sc, shared=shared, mitsuba_root=args.mitsuba_root,
-                                                 threads=args.render_threads, progress=_render_progress)
+                                                 threads=args.render_threads, progress=suite_mod.render_progress)
         if folder is None:
             print(f"  {sc.name}: skipped ({why})", flush=True)
             continue

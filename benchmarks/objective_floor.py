@@ -130,11 +130,6 @@ def scene_row(d, seed: int = 0, surface: bool = False, **solve_kw) -> dict:
     return out
 
 
-def _render_progress(msg: str) -> None:
-    """Progress of a Mitsuba render (only when a scene is not cached), on stderr."""
-    print(f"    rendering {msg}", file=sys.stderr, flush=True)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("Reading: ")[1].split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -174,7 +169,8 @@ def main(argv=None) -> int:
     cols += ["time"]
     print("| scene | " + " | ".join(cols) + " |\n|" + "---|" * (len(cols) + 1), flush=True)
     for sc in scenes:
-        folder, why = suite_mod.available_folder(sc, shared=shared, threads=args.threads, progress=_render_progress)
+        folder, why = suite_mod.available_folder(sc, shared=shared, threads=args.threads,
+                                                 progress=suite_mod.render_progress)
         d = None if folder is None else load_diligent(folder, dtype=torch.float32)
         if d is None or d.normals_gt is None:
             print(f"| {sc.name} | skipped ({why or 'no ground-truth normals'}) |", flush=True)

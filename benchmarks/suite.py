@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -184,3 +185,9 @@ def available_folder(scene: Scene, shared: Optional[Path] = None, **kw) -> Tuple
     if folder is None:
         return None, f"capture not found under {shared}; pass --shared DIR"
     return folder, ""
+
+
+def render_progress(msg: str) -> None:
+    """Progress of a Mitsuba render (only when a scene is not cached), on stderr: the ``progress`` of
+    :func:`scene_folder` for the scripts that loop over the suite."""
+    print(f"    rendering {msg}", file=sys.stderr, flush=True)
