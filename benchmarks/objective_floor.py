@@ -55,7 +55,7 @@ def solution_loss(obs, basis: torch.Tensor, normals: torch.Tensor, scale: float,
     calibration's choice between starts does.
     """
     from torch_hsh.ps.design import MixedDesign
-    from torch_hsh.ps.optim import irls_weights
+    from torch_hsh.ps.optim import cauchy_rho, irls_weights
 
     y, w0 = obs.data.y.double(), obs.weights.double()
     des = MixedDesign(basis.double(), obs.data.lights.double(), order)
@@ -63,7 +63,7 @@ def solution_loss(obs, basis: torch.Tensor, normals: torch.Tensor, scale: float,
     for s in range(0, normals.shape[0], chunk):
         sl = slice(s, s + chunk)
         _, res = irls_weights(des(normals[sl].double()), y[sl].transpose(1, 2), w0[sl].clone(), w0[sl], scale, c, 3)
-        out.append((w0[sl] * torch.log1p((res / (c * scale)) ** 2)).sum(-1))
+        out.append((w0[sl] * cauchy_rho(res, scale, c)).sum(-1))
     return torch.cat(out)
 
 

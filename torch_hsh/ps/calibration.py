@@ -24,6 +24,7 @@ from .design import MixedDesign, _design_factors, ridge_profile
 from .lambertian import _solve_flat, trimmed_weights
 from .optim import (
     _ridge_diag,
+    cauchy_rho,
     cauchy_weights,
     fd_step,
     irls_weights,
@@ -214,7 +215,7 @@ def _calibrate_shared(y, lights, w0, n_start, order, M, profile, ridge, sigma_y,
         X, T = _design_factors(n_k, lights, order)
         Psi = (X @ (T @ B_k.T)).transpose(1, 2)
         _, res = irls_weights(Psi, yT, w0S.clone(), w0S, sig, c, 3)
-        losses.append(float((w0S * torch.log1p((res / (c * sig)) ** 2)).sum()))
+        losses.append(float((w0S * cauchy_rho(res, sig, c)).sum()))
     i_best = min(range(len(cands)), key=lambda i: losses[i])
     B, scale, chosen, n_cal = cands[i_best]
     info["calibration_losses"] = losses

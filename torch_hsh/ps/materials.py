@@ -76,7 +76,7 @@ from .calibration import _CAL_LM_ITERS, _calibrate, _calibration_subset, _fit_ba
 from .design import _design_factors
 from .lambertian import _solve_flat, trimmed_weights
 from .observations import Observations
-from .optim import _ridge_diag, cauchy_weights, irls_weights, observation_residual, solve_weights
+from .optim import _ridge_diag, cauchy_rho, cauchy_weights, irls_weights, observation_residual, solve_weights
 from .settings import Settings
 
 __all__ = ["MaterialsSelection", "select_materials", "light_folds", "AUTO_CANDIDATES"]
@@ -244,7 +244,7 @@ def select_materials(obs: Observations, n_start: torch.Tensor, cfg: Settings,
         floor = max(3.0 * obs.sigma_y, 1e-4 * obs.typical, 1e-12)
         scale = max(min(scales), floor)
         w = w0S.double()
-        totals = torch.stack([(w * torch.log1p((r.double() / (cfg.cauchy_c * scale)) ** 2)).sum(-1) for r in res_all])
+        totals = torch.stack([(w * cauchy_rho(r.double(), scale, cfg.cauchy_c)).sum(-1) for r in res_all])
         count = float(w.sum().clamp(min=1.0))
         i, crit, se = one_standard_error_choice(totals, count)
     return MaterialsSelection(

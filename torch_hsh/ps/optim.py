@@ -103,6 +103,12 @@ def cauchy_weights(res: torch.Tensor, w0: torch.Tensor, scale: float, c: float) 
     return w0 / (1.0 + (res / (c * scale)) ** 2)
 
 
+def cauchy_rho(res: torch.Tensor, scale: float, c: float) -> torch.Tensor:
+    """Cauchy loss ``log(1 + (res / (c scale))^2)`` of every residual: the robust loss whose IRLS weights
+    :func:`cauchy_weights` gives, by which the solver compares fits (calibration starts, materials, held-out lights)."""
+    return torch.log1p((res / (c * scale)) ** 2)
+
+
 def observation_residual(Psi: torch.Tensor, W: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """RMS over the channels of ``y - W^T Psi``, ``(p, L)``."""
     return (y - combine(W, Psi)).pow(2).mean(1).sqrt()

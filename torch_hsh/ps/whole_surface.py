@@ -77,7 +77,7 @@ from ._geometry import start_depth
 from .coefficients import fit_coefficients
 from .design import MixedDesign
 from .observations import Observations, observe
-from .optim import _ridge_diag, cauchy_weights, combine, irls_weights, observation_residual, solve_weights
+from .optim import _ridge_diag, cauchy_rho, cauchy_weights, combine, irls_weights, observation_residual, solve_weights
 from .refinement import Refinement, refine_shared_chunk
 from .result import HSHResult, confidence, directional_albedo_view
 from .settings import SURFACE_ITERATIONS, SURFACE_ROUNDS, Settings
@@ -256,7 +256,7 @@ def _heldout_error(data: _Data, n: torch.Tensor, w: torch.Tensor, sub: torch.Ten
     for sl, _, _, res in _fit_chunks(data, n, w, sub):
         r = res[:, test]
         v = data.w0[sub[sl]][:, test] > 0
-        rho = torch.log1p((r / (data.c * data.scale)) ** 2)
+        rho = cauchy_rho(r, data.scale, data.c)
         tot += float(torch.where(v, rho, torch.zeros_like(rho)).sum())
         cnt += float(v.sum())
     return tot / max(cnt, 1.0)
