@@ -124,35 +124,51 @@ def test_objective_floor_quick_surface_and_interreflections(tmp_path, monkeypatc
     assert 0 <= float(m.group(10)) < 50  # this field has an ambient term and cast shadows: a few % of the light
 
 
-def test_objective_floor_surface_loss_of_a_plane():
-    # a tilted plane: its own depth gives its normals back and casts no shadow, so the surface loss is the
-    # per-pixel loss at the plane's normals
+def _objective_floor():
+    """benchmarks/objective_floor.py as a module (the folder is put on the path, as its tests of functions do)."""
+    import importlib
     import sys
     from pathlib import Path
-    from types import SimpleNamespace
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from objective_floor import solution_loss, surface_loss
+    return importlib.import_module("objective_floor")
+
+
+def _rendered(g, normals, n_lights, order=2, spread=0.5, noise=0.0):
+    """Observations that the shared model renders from ``normals (P, 3)``: a mostly diffuse random basis of two
+    BRDFs, lights around the pole, random mixing weights (and Gaussian noise). Returns ``(obs, B)``."""
+    from types import SimpleNamespace
 
     from torch_hsh import num_isotropic
     from torch_hsh.ps.design import MixedDesign
     from torch_hsh.ps.optim import combine
 
+    P = normals.shape[0]
+    B = torch.randn(2, num_isotropic(order), generator=g, dtype=torch.float64)
+    B[:, 0] += 4.0  # positive on the hemisphere
+    lights = torch.nn.functional.normalize(torch.randn(n_lights, 3, generator=g, dtype=torch.float64) * spread
+                                           + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), dim=-1)
+    W = torch.rand(P, 2, 3, generator=g, dtype=torch.float64) + 0.5
+    y = combine(W, MixedDesign(B, lights, order)(normals)).transpose(1, 2)  # (P, L, C)
+    if noise:
+        y = y + noise * torch.randn(y.shape, generator=g, dtype=torch.float64)
+    obs = SimpleNamespace(data=SimpleNamespace(y=y, lights=lights), weights=torch.ones(P, n_lights, dtype=torch.float64))
+    return obs, B
+
+
+def test_objective_floor_surface_loss_of_a_plane():
+    # a tilted plane: its own depth gives its normals back and casts no shadow, so the surface loss is the
+    # per-pixel loss at the plane's normals
+    of = _objective_floor()
     g = torch.Generator().manual_seed(5)
     H = W = 12
     mask = torch.ones(H, W, dtype=torch.bool)
     n = torch.nn.functional.normalize(torch.tensor([0.2, -0.1, 1.0], dtype=torch.float64), dim=0).expand(H, W, 3)
-    lights = torch.nn.functional.normalize(torch.randn(10, 3, generator=g, dtype=torch.float64) * 0.3
-                                           + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), dim=-1)
-    B = torch.randn(2, num_isotropic(2), generator=g, dtype=torch.float64)
-    B[:, 0] += 4.0
-    W_ = torch.rand(H * W, 2, 3, generator=g, dtype=torch.float64) + 0.5
-    y = combine(W_, MixedDesign(B, lights, 2)(n.reshape(-1, 3))).transpose(1, 2)
-    y = y + 0.01 * torch.randn(y.shape, generator=g, dtype=torch.float64)  # a residual, so the loss is not ~0
-    obs = SimpleNamespace(data=SimpleNamespace(y=y, lights=lights), weights=torch.ones(H * W, 10, dtype=torch.float64))
-    want = float(solution_loss(obs, B, n.reshape(-1, 3), 0.05, 2, 2.385).mean())
+    # a residual (noise), so the loss is not ~0
+    obs, B = _rendered(g, n.reshape(-1, 3), 10, spread=0.3, noise=0.01)
+    want = float(of.solution_loss(obs, B, n.reshape(-1, 3), 0.05, 2, 2.385).mean())
     assert want > 1e-3
-    assert surface_loss(obs, B, n, mask, 0.05, 2, 2.385, 0.25) == pytest.approx(want, rel=1e-6)
+    assert of.surface_loss(obs, B, n, mask, 0.05, 2, 2.385, 0.25) == pytest.approx(want, rel=1e-6)
 
 
 def _small_scene():
@@ -168,12 +184,7 @@ def _small_scene():
 def test_objective_floor_loss_is_the_calibration_criterion(monkeypatch):
     # solution_loss summed over the calibration subset, at the candidates' common scale, is the loss by which
     # the calibration chose its start (info["calibration_losses"]); the scale of scene_row is the calibrations'
-    import sys
-    from pathlib import Path
     from types import SimpleNamespace
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from objective_floor import scene_row, solution_loss
 
     import torch_hsh.ps.calibration as cal_mod
     import torch_hsh.ps.pipeline as pipe
@@ -200,40 +211,23 @@ def test_objective_floor_loss_is_the_calibration_criterion(monkeypatch):
     sig = min(float(o[1]) for *_, o in seen)
     for (y, w0, lights, (B, _, n)), want in zip(seen, losses):
         obs = SimpleNamespace(data=SimpleNamespace(y=y, lights=lights), weights=w0)
-        got = float(solution_loss(obs, cal_mod._unit_rows(B), n, sig, 3, 2.385).sum())
+        got = float(_objective_floor().solution_loss(obs, cal_mod._unit_rows(B), n, sig, 3, 2.385).sum())
         assert got == pytest.approx(want, rel=1e-9)
 
     monkeypatch.setattr(pipe, "calibrate", spy_calibrate)
-    row = scene_row(d)
+    row = _objective_floor().scene_row(d)
     assert len(cals) == 2  # the default and the truth-start solve calibrate; the third reuses the default's basis
     assert row["scale"] == pytest.approx(min(c.scale for c in cals), rel=1e-12)
 
 
 def test_objective_floor_solution_loss():
     # the per-pixel Cauchy loss is 0 on data the shared model renders exactly, and grows away from the normals
-    import sys
-    from pathlib import Path
-    from types import SimpleNamespace
-
-    import torch
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from objective_floor import solution_loss
-    from torch_hsh import num_isotropic
-    from torch_hsh.ps.design import MixedDesign
-    from torch_hsh.ps.optim import combine
-
+    solution_loss = _objective_floor().solution_loss
     g = torch.Generator().manual_seed(3)
-    order, P, L, M, C = 2, 40, 24, 2, 3
-    B = torch.randn(M, num_isotropic(order), generator=g, dtype=torch.float64)
-    B[:, 0] += 4.0  # a mostly diffuse basis, positive on the hemisphere
-    lights = torch.nn.functional.normalize(torch.randn(L, 3, generator=g, dtype=torch.float64) * 0.5
-                                           + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), dim=-1)
+    order, P = 2, 40
     slopes = torch.randn(P, 2, generator=g, dtype=torch.float64) * 0.4
     n = torch.nn.functional.normalize(torch.cat([slopes, torch.ones(P, 1, dtype=torch.float64)], -1), dim=-1)
-    W = torch.rand(P, M, C, generator=g, dtype=torch.float64) + 0.5
-    y = combine(W, MixedDesign(B, lights, order)(n)).transpose(1, 2)  # (P, L, C)
-    obs = SimpleNamespace(data=SimpleNamespace(y=y, lights=lights), weights=torch.ones(P, L, dtype=torch.float64))
+    obs, B = _rendered(g, n, 24, order)
     at_truth = solution_loss(obs, B, n, 0.05, order, 2.385, chunk=16)
     # only the tiny ridge of the mixing-weight solve (1e-4 of the Gram diagonal) leaves a residual
     assert at_truth.shape == (P,) and float(at_truth.max()) < 1e-3
