@@ -99,7 +99,7 @@ def test_objective_floor_quick(tmp_path, monkeypatch):
     monkeypatch.setenv("TORCH_HSH_CACHE", str(tmp_path / "cache"))
     r = run_script("benchmarks/objective_floor.py", "--quick", "--only", "bumpy_shadows", "--threads", "1")
     m = re.search(rf"^\| bumpy_shadows \| {NUM} \| {NUM} \| {NUM} \| {NUM} \| {NUM} \| {NUM} \| (truth start|default) \| "
-                  rf"{NUM} s \|$", r.stdout, re.M)
+                  rf"{NUM} \| {NUM} \| {NUM} s \|$", r.stdout, re.M)
     assert m, r.stdout
     errs = [float(m.group(i)) for i in (1, 2, 3)]
     assert all(0 < e < 30 for e in errs), errs
@@ -107,6 +107,8 @@ def test_objective_floor_quick(tmp_path, monkeypatch):
     loss_def, loss_truth, loss_px = float(m.group(4)), float(m.group(5)), float(m.group(6))
     assert loss_def > 0 and loss_truth > 0 and loss_px > 0
     assert m.group(7) == ("truth start" if loss_truth < loss_def else "default")
+    chosen, share = float(m.group(8)), float(m.group(9))
+    assert 0 < chosen < 30 and 0 <= share <= 100
 
 
 def test_objective_floor_quick_surface_and_interreflections(tmp_path, monkeypatch):
@@ -116,12 +118,12 @@ def test_objective_floor_quick_surface_and_interreflections(tmp_path, monkeypatc
                    "--surface", "--interreflections")
     assert "| surface loss default | surface loss truth start | surface loss truth | bounce (% of the light) | time |" \
         in r.stdout, r.stdout
-    m = re.search(r"^\| bumpy_shadows \| " + rf"{NUM} \| " * 6 + rf"(?:truth start|default) \| {NUM} \| {NUM} \| {NUM} \| "
-                  rf"{NUM} \((kept|rejected: images unchanged)\) \| {NUM} s \|$", r.stdout, re.M)
+    m = re.search(r"^\| bumpy_shadows \| " + rf"{NUM} \| " * 6 + rf"(?:truth start|default) \| {NUM} \| {NUM} \| "
+                  rf"{NUM} \| {NUM} \| {NUM} \| {NUM} \((kept|rejected: images unchanged)\) \| {NUM} s \|$", r.stdout, re.M)
     assert m, r.stdout
-    surf = [float(m.group(i)) for i in (7, 8, 9)]
+    surf = [float(m.group(i)) for i in (9, 10, 11)]
     assert all(v > 0 for v in surf), surf
-    assert 0 <= float(m.group(10)) < 50  # this field has an ambient term and cast shadows: a few % of the light
+    assert 0 <= float(m.group(12)) < 50  # this field has an ambient term and cast shadows: a few % of the light
 
 
 def _objective_floor():
