@@ -8,6 +8,7 @@ OpenLIME ``ShaderRTI`` / ``HSH.lightWeights``), in NumPy, and does not use this 
 import json
 import math
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -202,6 +203,17 @@ def test_lights_cli_exit_codes(tmp_path, capsys):
     assert code == 2 and "not inside the 40x40 images" in err
     code, err = run("--sphere-circle", "20", "20", "15")
     assert code == 1 and "no highlight found" in err and "img_003.png" in err
+    # a circle smaller than the sphere puts the steepest lights' highlights beyond r / sqrt(2): below the horizon,
+    # which `torch-hsh ps` would refuse, so nothing is written
+    img_ok = img.clone()
+    img_ok[2] = img_ok[1]
+    cap_ok = save_rti(tmp_path / "cap_ok", img_ok, lights, mask=m)
+    with pytest.raises(SystemExit) as e:
+        cli.main(["lights", str(cap_ok), "--sphere-circle", "19.5", "19.5", "12", "--out", out, "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 1 and "at or below the horizon" in err and "cap_ok" in err, err
+    assert cli.main(["lights", str(cap_ok), "--sphere-circle", "19.5", "19.5", "16", "--out", out, "--quiet"]) == 0
+    Path(out).unlink()
     _write_png(tmp_path / "empty.png", np.zeros((40, 40), np.uint8))
     code, err = run("--sphere-mask", str(tmp_path / "empty.png"))
     assert code == 1 and "empty.png" in err and "no sphere found" in err

@@ -198,6 +198,12 @@ def _run_lights(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     if missing.size:
         names = ", ".join(str(paths[i]) for i in missing[:3]) + (" ..." if missing.size > 3 else "")
         raise InputError(f"no highlight found on the sphere in {missing.size} image(s): {names}")
+    below = np.nonzero(est.lights[:, 2] <= 0)[0]
+    if below.size:  # a highlight beyond r / sqrt(2) of the centre: the light is at or below the horizon
+        names = ", ".join(str(paths[i]) for i in below[:3]) + (" ..." if below.size > 3 else "")
+        raise InputError(f"{below.size} image(s) put the light at or below the horizon (their highlight is more than "
+                         f"0.71 r from the sphere's centre), which `torch-hsh ps` refuses: {names}; check the sphere "
+                         "(--sphere-mask / --sphere-circle)")
     rel = [os.path.relpath(p.resolve(), out.parent) for p in paths]
     rel = [r if not r.startswith("..") else str(p.resolve()) for r, p in zip(rel, paths)]
     write_lp(out, rel, est.lights, overwrite=args.overwrite)
