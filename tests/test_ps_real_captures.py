@@ -263,6 +263,17 @@ def test_result_save_and_load_round_trip(tmp_path):
     bad.write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
         ps.HSHResult.load(bad)
+    # other files of a result folder, and a truncated archive: a ValueError that names the file, never numpy's
+    # TypeError of a .npy under `with` or its advice to load pickled data unsafely
+    import numpy as np
+
+    np.save(tmp_path / "normals.npy", r.normals.numpy())
+    (tmp_path / "metrics.json").write_text('{"pixels": 48}')
+    (tmp_path / "cut.npz").write_bytes(f.read_bytes()[:200])
+    for name in ("normals.npy", "metrics.json", "cut.npz"):
+        with pytest.raises(ValueError, match=rf"{name}: not a saved HSHResult") as e:
+            ps.HSHResult.load(tmp_path / name)
+        assert "allow_pickle" not in str(e.value)
 
 
 def test_refinement_passes_restart_from_the_refined_normals():

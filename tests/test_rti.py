@@ -388,6 +388,14 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["rti", str(tmp_path / "nothing"), "--rti", str(tmp_path / "y.rti"), "--quiet"])
     assert e.value.code == 1 and "nothing" in capsys.readouterr().err
+    for opt in ("--rti", "--relight"):  # a missing output folder is an argument error, before the projection
+        with pytest.raises(SystemExit) as e:
+            cli.main(["rti", str(tmp_path / "res"), opt, str(tmp_path / "no_dir" / "o.rti"), "--quiet"])
+        assert e.value.code == 2 and "no_dir does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # a file of the result folder that is not the result
+        cli.main(["rti", str(tmp_path / "res" / "normals.npy"), "--rti", str(tmp_path / "y.rti"), "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 1 and "normals.npy: not a saved HSHResult" in err and "TypeError" not in err, err
 
 
 def test_example_capture_and_lights_command(tmp_path):

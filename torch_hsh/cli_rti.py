@@ -244,6 +244,9 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     for opt, val in (("--rti", args.rti), ("--relight", args.relight)):
         if val is not None and Path(val).exists() and not args.overwrite:
             ap.error(f"argument {opt}: {val} exists; pass --overwrite to replace it")
+        parent = None if val is None else Path(os.path.abspath(val)).parent
+        if parent is not None and not parent.is_dir():  # before the projection, which takes a while
+            ap.error(f"argument {opt}: the folder {parent} does not exist")
     if args.max_angle != "auto":
         try:
             max_angle = float(args.max_angle)

@@ -145,15 +145,21 @@ class HSHResult:
 
         import numpy as np
 
+        import zipfile
+
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"{p}: no such file")
+        with open(p, "rb") as f:
+            magic = f.read(4)
+        if magic != b"PK\x03\x04":  # every .npz is a zip archive; a .npy, a .json or a text file is not
+            raise ValueError(f"{p}: not a saved HSHResult (not an .npz archive; give a result folder or its result.npz)")
         try:
             with np.load(p, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
             meta = json.loads(bytes(arrays.pop("metadata")).decode("utf-8"))
-        except (OSError, ValueError, KeyError) as e:
-            raise ValueError(f"{p}: not a saved HSHResult ({e})") from e
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+            raise ValueError(f"{p}: not a saved HSHResult ({type(e).__name__}: {e})") from e
         if meta.get("format") != _SAVE_FORMAT:
             raise ValueError(f"{p}: not a saved HSHResult (format {meta.get('format')!r})")
         if int(meta.get("version", 0)) > _SAVE_VERSION:
