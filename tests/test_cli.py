@@ -113,6 +113,8 @@ def test_help_lists_the_options(capsys):
     (["--drop-first", "7"], "--drop-first"),  # 1 image left of 8
     (["--device", "nonsense"], "--device"),
     (["--threads", "0"], "--threads"),
+    (["--materials", "99"], "--materials: expected 'auto' or an integer between 0 (independent BRDFs) and 8"),
+    (["--materials", "foo"], "--materials: expected 'auto'"),
 ])  # fmt: skip
 def test_bad_arguments_exit_2_before_any_folder(tmp_path, capsys, fake_solver, extra, msg):
     out = tmp_path / "res"

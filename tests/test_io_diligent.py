@@ -239,8 +239,10 @@ def test_load_handmade_folder(tmp_path):
 
 def test_load_drop_first_and_max_images(tmp_path):
     ref = _handmade_folder(tmp_path / "o", names=("1.png", "2.png", "3.png"))
-    with pytest.raises(ValueError, match="fewer than 3 dimensions"):
+    with pytest.raises(ValueError, match=r"1 of its 3 images left after drop_first=1, max_images=1; .* at least 3"):
         load_diligent(tmp_path / "o", drop_first=1, max_images=1)
+    with pytest.raises(ValueError, match=r"2 of its 3 images left after drop_first=1"):
+        load_diligent(tmp_path / "o", drop_first=1)
     d = load_diligent(tmp_path / "o", drop_first=1, max_images=1, dtype=torch.float64, check_lights=False)
     assert d.names == ["2.png"]
     np.testing.assert_allclose(d.lights.numpy(), ref["lights"][1:2], atol=1e-8)

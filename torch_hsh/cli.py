@@ -100,10 +100,14 @@ def _int_in(lo: Optional[int] = None, hi: Optional[int] = None, what: str = "int
 
 
 def _materials_arg(text: str):
-    """``auto``, or an integer >= 0 (0: independent per-pixel BRDFs)."""
+    """``auto``, or an integer in [0, 8] (0: independent per-pixel BRDFs; the library takes 1 to 8 basis BRDFs)."""
     if text.strip().lower() == "auto":
         return "auto"
-    return _int_in(0)(text)
+    try:
+        return _int_in(0, 8)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer between 0 (independent BRDFs) and 8, "
+                                         f"got {text!r}") from None
 
 
 def _parse_device(ap: argparse.ArgumentParser, spec: str) -> torch.device:
