@@ -171,6 +171,18 @@ def test_bad_input_file_one_line_exit_1(tmp_path, capsys, fake_solver):
     assert code == 1 and "Traceback" in err and "light_directions.txt" in err
 
 
+def test_library_warnings_are_one_line(tmp_path, capsys, fake_solver):
+    data = _small_dataset(tmp_path / "obj")
+    (data / "mask.png").unlink()
+    code, err = _run(["ps", "--data", str(data), "--out", str(tmp_path / "res"), "--quiet"], capsys)
+    assert code == 0
+    want = f"torch-hsh ps: warning: {data}: no mask.png; every pixel is treated as valid"
+    assert want in err.splitlines() and "UserWarning" not in err and "cli.py" not in err, err
+    with pytest.warns(UserWarning, match="no mask.png"):  # --debug leaves warnings to Python (here: pytest)
+        code, err = _run(["ps", "--data", str(data), "--out", str(tmp_path / "res2"), "--quiet", "--debug"], capsys)
+    assert code == 0 and "torch-hsh ps: warning:" not in err
+
+
 def test_truncated_png_names_the_file(tmp_path, capsys, fake_solver):
     data = _small_dataset(tmp_path / "obj")
     raw = (data / "003.png").read_bytes()

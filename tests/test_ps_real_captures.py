@@ -5,6 +5,8 @@ Sizes above 2**24 are reached with cheap helper calls, not full solves.
 """
 import math
 
+import warnings
+
 import pytest
 import torch
 
@@ -116,6 +118,18 @@ def test_pixels_without_enough_observations_get_a_normal_and_zero_confidence():
     assert r.info["fallback_pixels"] >= 3
     c = r.confidence[3:]
     assert bool(((c >= 0) & (c <= 1)).all()) and float(c.mean()) > 0.5
+
+
+def test_a_warning_when_most_pixels_fall_back():
+    # three lights leave 3 valid observations per pixel: every pixel keeps its Lambertian normal, which is said
+    img, l, n = _scene(p=40, l=16, seed=5)
+    with pytest.warns(UserWarning, match=r"40 of 40 pixels have fewer than 4 valid observations of 3 lights"):
+        r = ps.solve_hsh(img[:3], l[:3], **FAST)
+    assert r.info["fallback_pixels"] == 40 and float(r.confidence.max()) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a few fallback pixels are normal (shadows) and say nothing
+        img[:13, :3] = 0.0
+        assert ps.solve_hsh(img, l, **FAST).info["fallback_pixels"] >= 3
 
 
 def test_confidence_is_low_where_the_model_does_not_fit():

@@ -59,6 +59,7 @@ import sys
 import tempfile
 import time
 import traceback
+import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
@@ -814,13 +815,24 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _one_line_warning(prefix: str):
+    """A ``warnings.showwarning`` that prints ``prefix message`` on one line of stderr, without the source line."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"{prefix} {' '.join(str(message).split())}", file=sys.stderr if file is None else file, flush=True)
+
+    return show
+
+
 def _dispatch(argv: Optional[List[str]]):
     ap = build_parser()
     args = ap.parse_args(argv)
     sub_ap = args.parser  # errors carry the subcommand's usage
     prefix = f"{PROG} {args.command}: error:"
     try:
-        return args.handler(args, sub_ap)
+        with warnings.catch_warnings():
+            if not args.debug:  # a library warning is one line, like the errors; --debug keeps Python's form
+                warnings.showwarning = _one_line_warning(f"{PROG} {args.command}: warning:")
+            return args.handler(args, sub_ap)
     except SystemExit:
         raise
     except KeyboardInterrupt:

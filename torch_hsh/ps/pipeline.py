@@ -274,6 +274,14 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
         normals = normals.clone()
         normals[bad] = _fallback_normals(obs, n_init, bad)
     info["fallback_pixels"] = float(bad.sum())
+    if 2 * int(bad.sum()) > bad.numel():
+        import warnings
+
+        warnings.warn(
+            f"{int(bad.sum())} of {bad.numel()} pixels have fewer than {MIN_VALID_OBSERVATIONS} valid observations "
+            f"of {d.lights.shape[0]} lights, so the HSH model cannot serve them: they keep a Lambertian normal and "
+            "confidence 0 (info['fallback_pixels']). Give more lights, or fewer dark or saturated observations.",
+            UserWarning, stacklevel=2)
     scale_c = cal.scale if cal is not None else float(fit.residual.median())
     conf = confidence(ref.weights, fit.residual, scale_c, cfg.order, cfg.cauchy_c)
     conf = torch.where(bad, torch.zeros_like(conf), conf)
