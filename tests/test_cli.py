@@ -220,12 +220,18 @@ def test_without_matplotlib_figures_are_skipped_and_said(tmp_path, capsys, fake_
 
 
 @pytest.mark.skipif(not FIGURES, reason="needs matplotlib for error_map.png")
-def test_rerun_replaces_own_result_and_drops_stale_files(tmp_path, fake_solver):
+def test_rerun_replaces_own_result_and_drops_stale_files(tmp_path, fake_solver, capsys):
     out = tmp_path / "res"
     cli.ps_main(["--out", str(out), *FAST])  # synthetic: ground truth -> error_map.png
     assert (out / "error_map.png").exists()
+    first = capsys.readouterr().out
+    assert "replac" not in first
+    created = _strict_json(out / cli.MANIFEST)["created_utc"]
     data = _small_dataset(tmp_path / "obj", normals=False)  # no ground truth -> no error map
-    cli.ps_main(["--data", str(data), "--out", str(out), "--quiet"])
+    cli.ps_main(["--data", str(data), "--out", str(out)])
+    said = capsys.readouterr().out  # the replacement is said, before the run and at its end
+    assert f"--out {out} holds a torch-hsh result (of {created}); it is replaced when this run ends" in said
+    assert f", replacing the result (of {created})" in said
     assert not (out / "error_map.png").exists()
     assert set(_strict_json(out / cli.MANIFEST)["files"]) | {cli.MANIFEST} == set(os.listdir(out))
     assert _leftovers(tmp_path) == []

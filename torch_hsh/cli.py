@@ -513,6 +513,9 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     if P == 0:
         raise InputError(f"{data['name']}: the mask selects no pixel")
 
+    previous = _previous_result(out)
+    if previous is not None:
+        say(f"--out {out} holds a torch-hsh result ({previous}); it is replaced when this run ends")
     # ---- solve (the output folder is staged only now, so a failed solve creates nothing)
     with _Staging(out) as stage:
         say(f"data: {data['name']}  pixels={P} lights={L} order={order} "
@@ -558,8 +561,20 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         for f in written:
             if f.endswith(".png"):
                 shutil.copyfile(out / f, figures / f"ps_{f}")
-    say(f"\nwrote {out}/ ({', '.join(written)})")
+    say(f"\nwrote {out}/ ({', '.join(written)})" + ("" if previous is None else f", replacing the result ({previous})"))
     return _jsonable(metrics)
+
+
+def _previous_result(out: Path) -> Optional[str]:
+    """``"of <created_utc>"`` (or ``"of an unknown date"``) if ``out`` holds a torch-hsh result that a run would
+    replace without ``--overwrite``; None otherwise (no folder, an empty one, or one that --overwrite replaces)."""
+    from ._result_folder import _read_manifest
+
+    if not is_result_folder(out):
+        return None
+    meta = _read_manifest(out) or {}
+    created = meta.get("created_utc")
+    return f"of {created}" if isinstance(created, str) else "of an unknown date"
 
 
 # --------------------------------------------------------------------------- #
