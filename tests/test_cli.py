@@ -6,6 +6,7 @@ a constant coefficient map); the real solver runs end to end in tests/test_examp
 """
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -171,6 +172,22 @@ def test_bad_input_file_one_line_exit_1(tmp_path, capsys, fake_solver):
     assert code == 1 and "Traceback" in err and "light_directions.txt" in err
 
 
+@pytest.mark.parametrize("extra,msg", [
+    (["--scene", "small"], "argument --scene: applies to the synthetic scene, not with --data"),
+    (["--size", "32", "--lights", "8"], "argument --size/--lights: applies to the synthetic scene"),
+    (["--drop-first", "6"], "argument --drop-first/--max-images: "),  # 2 of 8 images left
+])  # fmt: skip
+def test_options_that_a_data_run_would_ignore_or_cannot_meet_exit_2(tmp_path, capsys, fake_solver, extra, msg):
+    data = _small_dataset(tmp_path / "obj")
+    code, err = _run(["ps", "--data", str(data), "--out", str(tmp_path / "res"), "--quiet", *extra], capsys)
+    assert code == 2 and msg in _error_line(err), err
+    assert not (tmp_path / "res").exists() and fake_solver.calls == []
+    if extra[0] == "--drop-first":
+        assert "2 of its 8 images left" in err
+    code, err = _run(["ps", "--out", str(tmp_path / "res"), *FAST, "--linear"], capsys)
+    assert code == 2 and "argument --linear: applies to RTI captures (--data) only" in err
+
+
 def test_library_warnings_are_one_line(tmp_path, capsys, fake_solver):
     data = _small_dataset(tmp_path / "obj")
     (data / "mask.png").unlink()
@@ -232,6 +249,8 @@ def test_rerun_replaces_own_result_and_drops_stale_files(tmp_path, fake_solver, 
     said = capsys.readouterr().out  # the replacement is said, before the run and at its end
     assert f"--out {out} holds a torch-hsh result (of {created}); it is replaced when this run ends" in said
     assert f", replacing the result (of {created})" in said
+    assert "no ground-truth normals" in said and " nan " not in said  # the table says n/a, not nan
+    assert re.search(r"^HSH \(order \d\)\s+n/a\s+n/a\s+\d", said, re.M), said
     assert not (out / "error_map.png").exists()
     assert set(_strict_json(out / cli.MANIFEST)["files"]) | {cli.MANIFEST} == set(os.listdir(out))
     assert _leftovers(tmp_path) == []

@@ -173,8 +173,15 @@ def synthetic_scene(size: int = 48, n_lights: int = 40, seed: int = 0, dtype=tor
 
 
 def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
+    if args.data is not None:  # the synthetic scene's options would be ignored: say so instead
+        given = [f"--{k}" for k in ("scene", "size", "lights") if getattr(args, k) is not None]
+        if given:
+            ap.error(f"argument {'/'.join(given)}: applies to the synthetic scene, not with --data")
+    elif args.linear:
+        ap.error("argument --linear: applies to RTI captures (--data) only")
     if args.data is None:
         d: Dict[str, Any]
+        args.scene = args.scene or "demo"
         demo = args.scene == "demo"
         if args.size is None:
             args.size = 128 if demo else 48
@@ -211,7 +218,7 @@ def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
             ds = load_diligent(folder, dtype=torch.float32, normalize_intensities=True,
                                drop_first=args.drop_first, max_images=args.max_images)
     except ValueError as err:
-        if "no images left" in str(err):
+        if "images left after" in str(err):  # too few images left by --drop-first / --max-images
             ap.error(f"argument --drop-first/--max-images: {err}")
         raise InputError(str(err)) from err
     except (OSError, TypeError) as err:
@@ -321,7 +328,7 @@ def _ps_parser(sub) -> argparse.ArgumentParser:
                    help="0 (off) or 1..L-3: also fit on all but N lights and report the relighting error")
     p.add_argument("--drop-first", type=_int_in(0), default=0, help="skip the first N images (e.g. 20 for bearPNG)")
     p.add_argument("--max-images", type=_int_in(3), default=None, help="use at most N images (N >= 3)")
-    p.add_argument("--scene", choices=("demo", "small"), default="demo",
+    p.add_argument("--scene", choices=("demo", "small"), default=None,
                    help="synthetic scene without --data: demo (default; a 128x128 bumpy sphere, GGX / Blinn-Phong "
                         "over a texture, cast shadows, 96 lights, noise, 16 bit: torch_hsh.scenes.demo_scene) or small "
                         "(a 48x48 sphere with three materials and 40 lights)")
@@ -453,7 +460,12 @@ def _solve_methods(args, opts, imgs, lights, inten, mask, gt, say):
         say(line)
     say(f"\n{'method':32s} {'mean (deg)':>10s} {'median (deg)':>12s} {'time (s)':>9s}")
     for name, mean, med, tt in rows:
-        say(f"{name:32s} {mean:10.2f} {med:12.2f} {tt:9.2f}")
+        if gt is None:  # no error to report: say why instead of nan
+            say(f"{name:32s} {'n/a':>10s} {'n/a':>12s} {tt:9.2f}")
+        else:
+            say(f"{name:32s} {mean:10.2f} {med:12.2f} {tt:9.2f}")
+    if gt is None:
+        say("(n/a: the data have no ground-truth normals, e.g. no Normal_gt.mat)")
     return res, t_hsh, rows
 
 
