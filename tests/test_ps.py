@@ -184,6 +184,12 @@ def test_bad_inputs_give_clear_errors():
         ps.solve_hsh(img[..., 0], l)
     with pytest.raises(ValueError, match="mask"):
         ps.solve_hsh(img, l, mask=torch.ones(11, dtype=torch.bool))
+    # the two layout mistakes name the layout: lights on another axis, grey images without a channel axis
+    img4 = img.reshape(8, 2, 5, img.shape[-1])
+    with pytest.raises(ValueError, match=r"`images` must be \(L, H, W, C\) .*its axis 2 has the 8 lights: move it first"):
+        ps.solve_hsh(img4.permute(1, 2, 0, 3), l)
+    with pytest.raises(ValueError, match=r"no channel axis .* grey images are \(L, H, W, 1\)"):
+        ps.solve_hsh(img4[..., 0], l, mask=torch.ones(2, 5, dtype=torch.bool))
     with pytest.raises(ValueError, match="init"):
         ps.solve_hsh(img, l, init=torch.ones(3, 3, dtype=DT))
     with pytest.raises(ValueError, match="holdout"):

@@ -106,6 +106,19 @@ def check_inputs(images, lights, intensities=None, mask=None, valid=None, min_li
         )
     L, S, C = images.shape[0], tuple(images.shape[1:-1]), images.shape[-1]
     check_dirs(lights, "lights")
+    if lights.dim() == 2 and lights.shape[0] != L:  # say which layout `images` must have, not only the count
+        where = [i for i, n in enumerate(images.shape[1:], 1) if n == lights.shape[0]]
+        hint = f"; its axis {where[0]} has the {lights.shape[0]} lights: move it first" if where else ""
+        raise ValueError(
+            f"`lights` has {lights.shape[0]} rows but `images` {tuple(images.shape)} has {L} images along its first "
+            f"axis: `images` must be (L, H, W, C) or (L, P, C), lights first and channels last{hint}"
+        )
+    if mask is not None and isinstance(mask, torch.Tensor) and tuple(mask.shape) == tuple(images.shape[1:]) \
+            and images.dim() >= 3:
+        raise ValueError(
+            f"`images` {tuple(images.shape)} has no channel axis (its pixel shape equals `mask`'s "
+            f"{tuple(mask.shape)}): grey images are (L, H, W, 1); use images[..., None]"
+        )
     sizes = check_shape(lights, "lights", ("L", 3), sizes={"L": L, "C": C})
     if L < min_lights:
         raise ValueError(f"photometric stereo needs at least {min_lights} lights, got {L}")
