@@ -274,7 +274,7 @@ class Settings:
     order: int = _option(DEFAULT_ORDER, "basis order ``P`` (default 3: ``K = 20`` coefficients per channel).",
                          lambda v, s: check_order(v),
                          cli={"flag": "--order", "type": ("int", 0, 12),
-                              "help": "HSH order (default torch_hsh.ps.DEFAULT_ORDER)"})
+                              "help": f"HSH order (default {DEFAULT_ORDER}, torch_hsh.ps.DEFAULT_ORDER)"})
     materials: Union[int, str, None] = _option(
         DEFAULT_MATERIALS,
         """number ``M`` of shared basis BRDFs (1..8), ``"auto"`` to
@@ -297,8 +297,8 @@ class Settings:
         lobes. Needs at least 6 lights.""",
         _check_materials,
         cli={"flag": "--materials", "type": ("materials",),
-             "help": "shared basis BRDFs of the HSH solver (default torch_hsh.ps.DEFAULT_MATERIALS; "
-                     "0: independent BRDF per pixel)"})
+             "help": f"shared basis BRDFs of the HSH solver, 1-8 or auto (default {DEFAULT_MATERIALS}, "
+                     "torch_hsh.ps.DEFAULT_MATERIALS; 0: independent BRDF per pixel)"})
     init: Optional[torch.Tensor] = _option(
         None, "optional ``(*S, 3)`` starting normals (default: robust Lambertian).", compare=False)
     ridge: float = _option(0.1, """relative ridge strength ``lambda`` on the per-pixel coefficients
