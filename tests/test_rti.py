@@ -388,6 +388,14 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["rti", str(tmp_path / "nothing"), "--rti", str(tmp_path / "y.rti"), "--quiet"])
     assert e.value.code == 1 and "nothing" in capsys.readouterr().err
+    for opt in ("--rti", "--relight"):  # not into the result folder: the next `ps --out` there would refuse it
+        with pytest.raises(SystemExit) as e:
+            cli.main(["rti", str(tmp_path / "res"), opt, str(tmp_path / "res" / "o.rti"), "--quiet"])
+        assert e.value.code == 2 and "is a torch-hsh ps result folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        cli.main(["view", str(tmp_path / "res"), "--out", str(tmp_path / "res" / "v.html"), "--quiet"])
+    assert e.value.code == 2 and "is a torch-hsh ps result folder" in capsys.readouterr().err
+    assert cli.is_result_folder(tmp_path / "res")
     for opt in ("--rti", "--relight"):  # a missing output folder is an argument error, before the projection
         with pytest.raises(SystemExit) as e:
             cli.main(["rti", str(tmp_path / "res"), opt, str(tmp_path / "no_dir" / "o.rti"), "--quiet"])

@@ -105,7 +105,19 @@ def _out_file(ap: argparse.ArgumentParser, path: str, suffixes: Tuple[str, ...],
         ap.error(f"argument --out: {out} exists; pass --overwrite to replace it")
     if not out.parent.is_dir():
         ap.error(f"argument --out: the folder {out.parent} does not exist")
+    _not_into_a_result(ap, "--out", out)
     return out
+
+
+def _not_into_a_result(ap: argparse.ArgumentParser, option: str, path: Path) -> None:
+    """Exit 2 if ``path`` would be written inside a ``torch-hsh ps`` result folder: a foreign file there makes the
+    next ``ps --out`` run refuse the folder (it only replaces folders that hold nothing but its own files)."""
+    from ._result_folder import is_result_folder
+
+    parent = Path(os.path.abspath(path)).parent
+    if is_result_folder(parent):
+        ap.error(f"argument {option}: {parent} is a torch-hsh ps result folder; write beside it, not into it "
+                 "(a file of yours there makes the next `torch-hsh ps --out` refuse the folder)")
 
 
 def _load_result(args, ap: argparse.ArgumentParser):
@@ -247,6 +259,8 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         parent = None if val is None else Path(os.path.abspath(val)).parent
         if parent is not None and not parent.is_dir():  # before the projection, which takes a while
             ap.error(f"argument {opt}: the folder {parent} does not exist")
+        if val is not None:
+            _not_into_a_result(ap, opt, Path(val))
     if args.max_angle != "auto":
         try:
             max_angle = float(args.max_angle)
