@@ -184,6 +184,8 @@ def test_bad_inputs_give_clear_errors():
         ps.solve_hsh(img[..., 0], l)
     with pytest.raises(ValueError, match="mask"):
         ps.solve_hsh(img, l, mask=torch.ones(11, dtype=torch.bool))
+    with pytest.warns(UserWarning, match=r"8 of the 8 `lights` are at or below the horizon"):
+        ps.lambertian_ls(img, -l)  # a flipped frame is said (the loaders refuse such lights)
     # the two layout mistakes name the layout: lights on another axis, grey images without a channel axis
     img4 = img.reshape(8, 2, 5, img.shape[-1])
     with pytest.raises(ValueError, match=r"`images` must be \(L, H, W, C\) .*its axis 2 has the 8 lights: move it first"):

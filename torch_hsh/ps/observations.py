@@ -164,6 +164,13 @@ def prepare_inputs(
     if bool((nrm < 1e-6).any()):
         raise ValueError("`lights` contains a zero-length direction")
     lights = lights / nrm.unsqueeze(-1)
+    below = int((lights[:, 2] <= 0).sum())
+    if below:  # legal (steep normals can face them) but rare in a capture: most often a flipped frame
+        import warnings
+
+        warnings.warn(f"{below} of the {L} `lights` are at or below the horizon (z <= 0; z points toward the camera): "
+                      "they light only normals that face them. If that is not the capture, check the lights' frame "
+                      "(a sign flip of z, or of x / y).", UserWarning, stacklevel=3)
     e = _intensities(intensities, L, C, torch.empty(0, dtype=dtype, device=dev)).to(dev)  # (L, C), as the renderer
     if intensities is not None and bool((e <= 0).any()):
         raise ValueError("`intensities` must be > 0")
