@@ -388,6 +388,9 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["rti", str(tmp_path / "nothing"), "--rti", str(tmp_path / "y.rti"), "--quiet"])
     assert e.value.code == 1 and "nothing" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        cli.main(["rti", str(tmp_path / "res"), "--rti", str(tmp_path / "t.rti"), "--threads", "0", "--quiet"])
+    assert e.value.code == 2 and "--threads: must be between 1 and 1024" in capsys.readouterr().err
     for opt in ("--rti", "--relight"):  # not into the result folder: the next `ps --out` there would refuse it
         with pytest.raises(SystemExit) as e:
             cli.main(["rti", str(tmp_path / "res"), opt, str(tmp_path / "res" / "o.rti"), "--quiet"])

@@ -82,6 +82,17 @@ def _float(text: str) -> float:
 
 def _add_result(p) -> None:
     p.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
+    p.add_argument("--threads", type=_threads, default=2, help="CPU threads for torch (default 2)")
+
+
+def _threads(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if not 1 <= v <= 1024:
+        raise argparse.ArgumentTypeError(f"must be between 1 and 1024, got {v}")
+    return v
 
 
 def _add_exposure(p) -> None:
@@ -127,6 +138,9 @@ def _load_result(args, ap: argparse.ArgumentParser):
 
     if args.exposure is not None and not args.exposure > 0:
         ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
+    import torch
+
+    torch.set_num_threads(args.threads)
     src = Path(args.result)
     try:
         return HSHResult.load(src / "result.npz" if src.is_dir() else src)

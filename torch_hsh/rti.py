@@ -355,7 +355,7 @@ def project_to_rti(
     max_angle_deg: Optional[float] = None,
     nz: int = 24,
     nphi: int = 48,
-    chunk: int = 4096,
+    chunk: int = 256,
 ) -> torch.Tensor:
     r"""Project a photometric-stereo result onto the RTI HSH basis, pixel by pixel.
 
@@ -394,7 +394,9 @@ def project_to_rti(
         max_angle_deg: ``None`` (whole hemisphere) or the half-angle of the
             cap of lights to fit, in ``(0, 90]``.
         nz, nphi: quadrature size.
-        chunk: pixels per batch (memory).
+        chunk: pixels per batch. The rendering of a batch holds about ``chunk x nz x nphi x K x 3`` float64
+            values (at order 3 and the default rule, 256 pixels: about 250 MB); larger batches are not faster
+            (the bunny, 20,317 pixels, 1 thread: 14 s at 256, 24 s and 2 GB at 4,096).
 
     Returns:
         ``(*S, C, terms)`` RTI coefficients (float64).
