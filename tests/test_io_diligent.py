@@ -309,7 +309,6 @@ def test_load_errors(tmp_path):
         ("filenames.txt", "/etc/x.png\nb.png\nc.png\n", "outside"),
         ("filenames.txt", "a.png\nb.png\na.png\n", "line 3.*repeats line 1"),
         ("a.png", np.zeros((H + 1, W, 3), np.uint16), "differs from the first image"),
-        ("b.png", np.zeros((H, W), np.uint16), "expected an RGB image"),
         ("a.png", np.zeros((H, W, 3), np.uint8), "bit depth 8 differs"),
         ("mask.png", np.zeros((H, W + 2), np.uint8), "mask size"),
     ]):
@@ -322,6 +321,14 @@ def test_load_errors(tmp_path):
             (p / name).write_text(content)
         with pytest.raises(ValueError, match=msg):
             load_diligent(p)
+
+    # a grey 16-bit image loads as three equal channels
+    p = fresh("grey")
+    grey = ((np.arange(H * W).reshape(H, W) * 97) % 65535).astype(np.uint16)
+    _write_png(p / "b.png", grey)
+    d = load_diligent(p, dtype=torch.float64, normalize_intensities=False)
+    for c in range(3):
+        np.testing.assert_array_equal(d.images[0, ..., c].numpy(), grey / 65535.0)  # b.png is the first name
 
     p = fresh("missingimg")
     (p / "c.png").unlink()

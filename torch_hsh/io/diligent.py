@@ -2,7 +2,7 @@ r"""Photometric-stereo image stacks in the DiLiGenT folder layout.
 
 A DiLiGenT object folder holds::
 
-    001.png ... NNN.png      one 16-bit RGB PNG per light (linear radiance)
+    001.png ... NNN.png      one 16-bit RGB (or grey) PNG per light (linear radiance)
     filenames.txt            image names, one a line, in light order (optional here)
     light_directions.txt     N x 3 unit light directions, whitespace separated
     light_intensities.txt    N x 3 RGB light intensities (optional here)
@@ -246,7 +246,8 @@ class PhotometricDataset:
 
     Attributes:
         images: ``(L, H, W, 3)`` linear RGB images (divided by the light
-            intensities when loaded with ``normalize_intensities=True``).
+            intensities when loaded with ``normalize_intensities=True``); a
+            grey PNG gives three equal channels.
         lights: ``(L, 3)`` unit light directions, DiLiGenT frame
             (x right, y up, z toward the camera).
         intensities: ``(L, 3)`` RGB light intensities as stored in the folder.
@@ -447,8 +448,12 @@ def _read_images(folder: Path, names: Sequence[str], drop_first: int, dtype) -> 
         img = _read_png(f)
         if img.ndim == 3 and img.shape[2] == 4:
             img = img[..., :3]
+        if img.ndim == 3 and img.shape[2] == 1:
+            img = img[..., 0]
+        if img.ndim == 2:  # a grey capture: the same value in the three channels, so the (L, H, W, 3) layout holds
+            img = np.repeat(img[..., None], 3, axis=-1)
         if img.ndim != 3 or img.shape[2] != 3:
-            raise ValueError(f"{f}: expected an RGB image, got array of shape {img.shape}")
+            raise ValueError(f"{f}: expected an RGB or grey image, got array of shape {img.shape}")
         if images is None:
             depth0 = depth
             if depth == 8:
