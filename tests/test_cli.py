@@ -176,6 +176,7 @@ def test_bad_input_file_one_line_exit_1(tmp_path, capsys, fake_solver):
     (["--scene", "small"], "argument --scene: applies to the synthetic scene, not with --data"),
     (["--size", "32", "--lights", "8"], "argument --size/--lights: applies to the synthetic scene"),
     (["--drop-first", "6"], "argument --drop-first/--max-images: "),  # 2 of 8 images left
+    (["--linear"], "argument --linear: applies to RTI captures only"),  # a DiLiGenT folder holds linear PNGs
 ])  # fmt: skip
 def test_options_that_a_data_run_would_ignore_or_cannot_meet_exit_2(tmp_path, capsys, fake_solver, extra, msg):
     data = _small_dataset(tmp_path / "obj")

@@ -243,6 +243,9 @@ def test_load_drop_first_and_max_images(tmp_path):
         load_diligent(tmp_path / "o", drop_first=1, max_images=1)
     with pytest.raises(ValueError, match=r"2 of its 3 images left after drop_first=1"):
         load_diligent(tmp_path / "o", drop_first=1)
+    _handmade_folder(tmp_path / "two", names=("1.png", "2.png"))  # the folder itself is too small: not the options
+    with pytest.raises(ValueError, match="light_directions.txt: the 2 light directions span fewer than 3"):
+        load_diligent(tmp_path / "two", max_images=5)
     d = load_diligent(tmp_path / "o", drop_first=1, max_images=1, dtype=torch.float64, check_lights=False)
     assert d.names == ["2.png"]
     np.testing.assert_allclose(d.lights.numpy(), ref["lights"][1:2], atol=1e-8)

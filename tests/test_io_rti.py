@@ -171,6 +171,12 @@ def test_ps_cli_accepts_an_rti_folder(tmp_path, capsys, monkeypatch):
     # --linear reaches the reader (codes are then not linearised)
     cli.main(["ps", "--data", str(cap), "--out", str(tmp_path / "res2"), "--quiet", "--linear"])
     assert float((seen["images"].double() - got.double()).abs().max()) > 0.1
+    # too few images left by --drop-first is the options' doing (exit 2), not the .lp file's
+    with pytest.raises(SystemExit) as e:
+        cli.main(["ps", "--data", str(cap), "--out", str(tmp_path / "res3"), "--quiet",
+                  "--drop-first", str(len(imgs) - 2)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "--drop-first/--max-images" in err and f"2 of its {len(imgs)} images left" in err, err
 
 
 @pytest.mark.parametrize("case, msg", [

@@ -398,11 +398,16 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["view", str(tmp_path / "res"), "--out", str(tmp_path / "res" / "v.html"), "--quiet"])
     assert e.value.code == 2 and "is a torch-hsh ps result folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # nor the result folder itself as a --relight folder, even with --overwrite
+        cli.main(["rti", str(tmp_path / "res"), "--relight", str(tmp_path / "res"), "--overwrite", "--quiet"])
+    assert e.value.code == 2 and "is a torch-hsh ps result folder" in capsys.readouterr().err
     assert cli.is_result_folder(tmp_path / "res")
-    for opt in ("--rti", "--relight"):  # a missing output folder is an argument error, before the projection
-        with pytest.raises(SystemExit) as e:
-            cli.main(["rti", str(tmp_path / "res"), opt, str(tmp_path / "no_dir" / "o.rti"), "--quiet"])
-        assert e.value.code == 2 and "no_dir does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # a missing folder for the .rti file: an argument error, before the projection
+        cli.main(["rti", str(tmp_path / "res"), "--rti", str(tmp_path / "no_dir" / "o.rti"), "--quiet"])
+    assert e.value.code == 2 and "no_dir does not exist" in capsys.readouterr().err
+    # a --relight folder is created with its parents
+    assert cli.main(["rti", str(tmp_path / "res"), "--relight", str(tmp_path / "new" / "sub" / "rl"), "--quiet"]) == 0
+    assert (tmp_path / "new" / "sub" / "rl" / "info.json").is_file()
     with pytest.raises(SystemExit) as e:  # a file of the result folder that is not the result
         cli.main(["rti", str(tmp_path / "res" / "normals.npy"), "--rti", str(tmp_path / "y.rti"), "--quiet"])
     err = capsys.readouterr().err

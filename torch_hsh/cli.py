@@ -210,6 +210,8 @@ def _load_data(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     rti = is_rti_folder(folder)  # an RTI capture: *.lp + photographs (torch_hsh.io.rti)
     if not folder.is_dir() and not rti:
         ap.error(f"argument --data: {folder} is not a folder")
+    if args.linear and not rti:
+        ap.error(f"argument --linear: applies to RTI captures only; {folder} is a DiLiGenT folder (linear 16-bit PNGs)")
     try:
         if rti:
             ds = load_rti(folder, linear=args.linear, dtype=torch.float32, drop_first=args.drop_first,

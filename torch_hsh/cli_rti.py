@@ -125,10 +125,11 @@ def _not_into_a_result(ap: argparse.ArgumentParser, option: str, path: Path) -> 
     next ``ps --out`` run refuse the folder (it only replaces folders that hold nothing but its own files)."""
     from ._result_folder import is_result_folder
 
-    parent = Path(os.path.abspath(path)).parent
-    if is_result_folder(parent):
-        ap.error(f"argument {option}: {parent} is a torch-hsh ps result folder; write beside it, not into it "
-                 "(a file of yours there makes the next `torch-hsh ps --out` refuse the folder)")
+    path = Path(os.path.abspath(path))
+    for folder in (path, path.parent):  # the path itself (a folder output, replaced with --overwrite) or its parent
+        if is_result_folder(folder):
+            ap.error(f"argument {option}: {folder} is a torch-hsh ps result folder; write beside it, not into it "
+                     "(a file of yours there makes the next `torch-hsh ps --out` refuse the folder)")
 
 
 def _load_result(args, ap: argparse.ArgumentParser):
@@ -270,11 +271,12 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     for opt, val in (("--rti", args.rti), ("--relight", args.relight)):
         if val is not None and Path(val).exists() and not args.overwrite:
             ap.error(f"argument {opt}: {val} exists; pass --overwrite to replace it")
-        parent = None if val is None else Path(os.path.abspath(val)).parent
-        if parent is not None and not parent.is_dir():  # before the projection, which takes a while
+        if val is None:
+            continue
+        parent = Path(os.path.abspath(val)).parent
+        if opt == "--rti" and not parent.is_dir():  # before the projection (--relight creates its parents)
             ap.error(f"argument {opt}: the folder {parent} does not exist")
-        if val is not None:
-            _not_into_a_result(ap, opt, Path(val))
+        _not_into_a_result(ap, opt, Path(val))
     if args.max_angle != "auto":
         try:
             max_angle = float(args.max_angle)

@@ -364,7 +364,7 @@ def load_diligent(
     names, lights, intens = names[sel], lights[sel], intens[sel]
     if len(names) == 0:
         raise ValueError(f"{folder}: no images left after drop_first={drop_first}, max_images={max_images}")
-    if len(names) < 3 and (drop_first or max_images is not None) and check_lights:  # not the light file's fault
+    if len(names) < 3 <= n and (drop_first or max_images is not None) and check_lights:  # the options' doing
         raise ValueError(f"{folder}: {len(names)} of its {n} images left after drop_first={drop_first}, "
                          f"max_images={max_images}; photometric stereo needs at least 3")
     _check_light_geometry(lights, ldir_file, first_row=drop_first + 1, check_rank=check_lights)

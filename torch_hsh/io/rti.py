@@ -440,9 +440,13 @@ def load_rti(
         raise ValueError(f"`drop_first` must be an integer >= 0, got {drop_first!r}")
     stop = None if max_images is None else int(drop_first) + int(max_images)
     sel = slice(int(drop_first), stop)
+    n = len(names)
     names, paths, lights = names[sel], paths[sel], lights[sel]
     if not names:
         raise ValueError(f"{lp_path}: no images left after drop_first={drop_first}, max_images={max_images}")
+    if len(names) < 3 <= n and (drop_first or max_images is not None) and check_lights:  # the options' doing
+        raise ValueError(f"{lp_path}: {len(names)} of its {n} images left after drop_first={drop_first}, "
+                         f"max_images={max_images}; photometric stereo needs at least 3")
     _check_light_geometry(lights, lp_path, first_row=int(drop_first) + 1, check_rank=check_lights)
     images = _read_photographs(
         paths, lambda i, f: f"{lp_path}: image {names[i]!r} (number {i + 1 + int(drop_first)}) not found: {f}",
