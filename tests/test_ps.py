@@ -186,10 +186,22 @@ def test_bad_inputs_give_clear_errors():
         ps.solve_hsh(img, l, mask=torch.ones(11, dtype=torch.bool))
     with pytest.warns(UserWarning, match=r"8 of the 8 `lights` are at or below the horizon"):
         ps.lambertian_ls(img, -l)  # a flipped frame is said (the loaders refuse such lights)
+    # one call that reads the lights several times (fit and held-out check) says it once, at the caller's line
+    import warnings
+
+    flipped = l.clone()
+    flipped[0, 2] = -flipped[0, 2]
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("default")
+        ps.holdout_evaluation(img, flipped, holdout=2, seed=0, order=1)
+    horizon = [w for w in seen if "below the horizon" in str(w.message)]
+    assert len(horizon) == 1 and horizon[0].filename == __file__, [(w.filename, str(w.message)) for w in seen]
     # the two layout mistakes name the layout: lights on another axis, grey images without a channel axis
     img4 = img.reshape(8, 2, 5, img.shape[-1])
-    with pytest.raises(ValueError, match=r"`images` must be \(L, H, W, C\) .*its axis 2 has the 8 lights: move it first"):
+    with pytest.raises(ValueError, match=r"\(L, H, W, C\) .* \(if its axis 2, of size 8, holds the lights, move it first\)"):
         ps.solve_hsh(img4.permute(1, 2, 0, 3), l)
+    with pytest.raises(ValueError, match=r"has 8 along its first axis, .*: the counts disagree$"):
+        ps.solve_hsh(img4, l[:3])  # no hint where no axis but the channels could hold them
     with pytest.raises(ValueError, match=r"no channel axis .* grey images are \(L, H, W, 1\)"):
         ps.solve_hsh(img4[..., 0], l, mask=torch.ones(2, 5, dtype=torch.bool))
     with pytest.raises(ValueError, match="init"):

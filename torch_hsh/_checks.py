@@ -199,3 +199,18 @@ def broadcast_shapes(named: Sequence[Tuple[str, torch.Size]]) -> torch.Size:
     except RuntimeError:
         desc = ", ".join(f"`{n}` {tuple(s)}" for n, s in named)
         raise ValueError(f"leading shapes do not broadcast: {desc}") from None
+
+
+def warn_user(message: str, category: type = UserWarning) -> None:
+    """``warnings.warn`` attributed to the first caller outside this package (the user's line), so that the
+    warning names the user's call, and the default filter shows it once per call site however deep in the
+    library it was raised and however many library functions raise it for one call."""
+    import os
+    import sys
+    import warnings
+
+    pkg = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    level, frame = 2, sys._getframe(1)
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(pkg):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, category, stacklevel=level)

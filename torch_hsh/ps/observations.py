@@ -20,7 +20,7 @@ from typing import Dict, Optional, Tuple
 
 import torch
 
-from .._checks import check_dirs, check_shape, check_tensor
+from .._checks import check_dirs, check_shape, check_tensor, warn_user
 from ..render import _intensities
 from ._chunks import row_sum
 from .settings import Settings, check_dark_fraction, check_noise_sigma, check_saturation
@@ -107,11 +107,12 @@ def check_inputs(images, lights, intensities=None, mask=None, valid=None, min_li
     L, S, C = images.shape[0], tuple(images.shape[1:-1]), images.shape[-1]
     check_dirs(lights, "lights")
     if lights.dim() == 2 and lights.shape[0] != L:  # say which layout `images` must have, not only the count
-        where = [i for i, n in enumerate(images.shape[1:], 1) if n == lights.shape[0]]
-        hint = f"; its axis {where[0]} has the {lights.shape[0]} lights: move it first" if where else ""
+        where = [i for i, n in enumerate(images.shape[1:-1], 1) if n == lights.shape[0]]  # not the channel axis
+        hint = (f" (if its axis {where[0]}, of size {lights.shape[0]}, holds the lights, move it first)"
+                if where else "")
         raise ValueError(
-            f"`lights` has {lights.shape[0]} rows but `images` {tuple(images.shape)} has {L} images along its first "
-            f"axis: `images` must be (L, H, W, C) or (L, P, C), lights first and channels last{hint}"
+            f"`lights` has {lights.shape[0]} rows but `images` {tuple(images.shape)} has {L} along its first axis, "
+            f"the lights axis of the (L, H, W, C) or (L, P, C) layout: the counts disagree{hint}"
         )
     if mask is not None and isinstance(mask, torch.Tensor) and tuple(mask.shape) == tuple(images.shape[1:]) \
             and images.dim() >= 3:
@@ -166,11 +167,9 @@ def prepare_inputs(
     lights = lights / nrm.unsqueeze(-1)
     below = int((lights[:, 2] <= 0).sum())
     if below:  # legal (steep normals can face them) but rare in a capture: most often a flipped frame
-        import warnings
-
-        warnings.warn(f"{below} of the {L} `lights` are at or below the horizon (z <= 0; z points toward the camera): "
-                      "they light only normals that face them. If that is not the capture, check the lights' frame "
-                      "(a sign flip of z, or of x / y).", UserWarning, stacklevel=3)
+        warn_user(f"{below} of the {L} `lights` are at or below the horizon (z <= 0; z points toward the camera): "
+                  "they light only normals that face them. If that is not the capture, check the lights' frame "
+                  "(a sign flip of z, or of x / y).")
     e = _intensities(intensities, L, C, torch.empty(0, dtype=dtype, device=dev)).to(dev)  # (L, C), as the renderer
     if intensities is not None and bool((e <= 0).any()):
         raise ValueError("`intensities` must be > 0")

@@ -53,6 +53,7 @@ from typing import Dict, Optional
 
 import torch
 
+from .._checks import warn_user
 from ._chunks import ROW_CHUNK, row_sum, scatter_pixels
 from .calibration import calibrate, fixed_calibration
 from .coefficients import fit_coefficients
@@ -275,13 +276,13 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
         normals[bad] = _fallback_normals(obs, n_init, bad)
     info["fallback_pixels"] = float(bad.sum())
     if 2 * int(bad.sum()) > bad.numel():
-        import warnings
-
-        warnings.warn(
-            f"{int(bad.sum())} of {bad.numel()} pixels have fewer than {MIN_VALID_OBSERVATIONS} valid observations "
-            f"of {d.lights.shape[0]} lights, so the HSH model cannot serve them: they keep a Lambertian normal and "
-            "confidence 0 (info['fallback_pixels']). Give more lights, or fewer dark or saturated observations.",
-            UserWarning, stacklevel=2)
+        few = int((n_valid < MIN_VALID_OBSERVATIONS).sum())
+        failed = int(bad.sum()) - few
+        warn_user(
+            f"{int(bad.sum())} of {bad.numel()} pixels keep a Lambertian normal and confidence 0 "
+            f"(info['fallback_pixels']): {few} have fewer than {MIN_VALID_OBSERVATIONS} valid observations of "
+            f"{d.lights.shape[0]} lights" + (f", {failed} a failed fit" if failed else "") + ". Give more lights, "
+            "or fewer dark or saturated observations.")
     scale_c = cal.scale if cal is not None else float(fit.residual.median())
     conf = confidence(ref.weights, fit.residual, scale_c, cfg.order, cfg.cauchy_c)
     conf = torch.where(bad, torch.zeros_like(conf), conf)
