@@ -340,7 +340,9 @@ def load_diligent(
             folder or repeat, undecodable PNG or ``Normal_gt.mat`` files
             (the message names the file), count mismatches
             between images, directions, intensities and names, images of
-            different sizes or not RGB, mask or normals of the wrong size.
+            different sizes or neither RGB nor grey, mask or normals of the
+            wrong size, fewer than 3 images left by ``drop_first`` /
+            ``max_images``.
 
     Example:
         >>> data = load_diligent("../shared/data/bunny_specular")  # doctest: +SKIP
