@@ -72,6 +72,13 @@ def solution_loss(obs, basis: torch.Tensor, normals: torch.Tensor, scale: float,
     return torch.cat(out)
 
 
+def pixel_choice(normals_a: torch.Tensor, normals_b: torch.Tensor, loss_a: torch.Tensor, loss_b: torch.Tensor):
+    """At every pixel the normal of ``(P, 3)`` ``normals_a`` or ``normals_b`` whose per-pixel loss ``(P,)`` is lower
+    (``a`` on ties). Returns the chosen normals ``(P, 3)`` (float64) and ``(P,)`` True where ``b`` was chosen."""
+    b = loss_b < loss_a
+    return torch.where(b[:, None], normals_b, normals_a).double(), b
+
+
 def surface_loss(obs, basis: torch.Tensor, normals: torch.Tensor, mask: torch.Tensor, scale: float, order: int,
                  c: float, bias: float) -> float:
     """Mean per-pixel loss of the whole-surface stage's objective at the surface of ``normals (H, W, 3)``.
@@ -123,8 +130,8 @@ def scene_row(d, seed: int = 0, surface: bool = False, **solve_kw) -> dict:
     per_px = {k: solution_loss(obs, r.basis_brdfs, r.normals[mask], scale, cfg.order, cfg.cauchy_c)
               for k, r in (("default", r_def), ("truth start", r_gt), ("default basis, truth pixels", r_px))}
     # (1) and (3) share the basis, so their losses compare pixel by pixel: each pixel takes the lower one
-    truth_px = per_px["default basis, truth pixels"] < per_px["default"]
-    chosen = torch.where(truth_px[:, None], r_px.normals[mask], r_def.normals[mask]).double()
+    chosen, truth_px = pixel_choice(r_def.normals[mask], r_px.normals[mask], per_px["default"],
+                                    per_px["default basis, truth pixels"])
     out = {
         "default": err(r_def), "truth start": err(r_gt), "default basis, truth pixels": err(r_px),
         **{f"loss {k}": float(v.mean()) for k, v in per_px.items()},

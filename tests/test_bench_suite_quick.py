@@ -222,6 +222,15 @@ def test_objective_floor_loss_is_the_calibration_criterion(monkeypatch):
     assert row["scale"] == pytest.approx(min(c.scale for c in cals), rel=1e-12)
 
 
+def test_objective_floor_pixel_choice():
+    choice = _objective_floor().pixel_choice
+    a = torch.tensor([[0.0, 0.0, 1.0]] * 3, dtype=torch.float32)
+    b = torch.tensor([[1.0, 0.0, 0.0]] * 3, dtype=torch.float32)
+    n, took_b = choice(a, b, torch.tensor([1.0, 2.0, 3.0]), torch.tensor([2.0, 1.0, 3.0]))
+    assert took_b.tolist() == [False, True, False]  # the lower loss; a tie keeps a
+    assert n.dtype == torch.float64 and n.tolist() == [[0, 0, 1], [1, 0, 0], [0, 0, 1]]
+
+
 def test_objective_floor_solution_loss():
     # the per-pixel Cauchy loss is 0 on data the shared model renders exactly, and grows away from the normals
     solution_loss = _objective_floor().solution_loss
