@@ -66,7 +66,7 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 import torch
 
-from ._cli_common import InputError, _add_common
+from ._cli_common import InputError, _add_common, _int_in
 from ._result_folder import (  # noqa: F401  (MANIFEST_VERSION, is_result_folder: importable from here as before)
     MANIFEST,
     MANIFEST_FORMAT,
@@ -86,20 +86,6 @@ PROG = "torch-hsh"
 # --------------------------------------------------------------------------- #
 # argument types
 # --------------------------------------------------------------------------- #
-def _int_in(lo: Optional[int] = None, hi: Optional[int] = None, what: str = "integer"):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an {what}, got {text!r}") from None
-        if (lo is not None and value < lo) or (hi is not None and value > hi):
-            rng = f">= {lo}" if hi is None else f"between {lo} and {hi}"
-            raise argparse.ArgumentTypeError(f"must be {rng}, got {value}")
-        return value
-
-    return parse
-
-
 def _materials_arg(text: str):
     """``auto``, or an integer in [0, 8] (0: independent per-pixel BRDFs; the library takes 1 to 8 basis BRDFs)."""
     if text.strip().lower() == "auto":
@@ -580,13 +566,13 @@ def _run_ps(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
 
 
 def _previous_result(out: Path) -> Optional[str]:
-    """``"of <created_utc>"`` (or ``"of an unknown date"``) if ``out`` holds a torch-hsh result that a run would
-    replace without ``--overwrite``; None otherwise (no folder, an empty one, or one that --overwrite replaces)."""
+    """``"of <created_utc>"`` (or ``"of an unknown date"``) if ``out`` holds a torch-hsh result (its manifest; the
+    files were checked against it by ``_check_out``), else None."""
     from ._result_folder import _read_manifest
 
-    if not is_result_folder(out):
+    meta = _read_manifest(out) if out.is_dir() else None
+    if meta is None:
         return None
-    meta = _read_manifest(out) or {}
     created = meta.get("created_utc")
     return f"of {created}" if isinstance(created, str) else "of an unknown date"
 

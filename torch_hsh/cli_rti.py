@@ -29,7 +29,7 @@ from typing import Any, Callable, Dict, List, Tuple
 
 import numpy as np
 
-from ._cli_common import InputError, _add_common
+from ._cli_common import InputError, _add_common, _int_in
 
 __all__ = ["add_rti_commands"]  # lights, rti, view
 
@@ -82,17 +82,7 @@ def _float(text: str) -> float:
 
 def _add_result(p) -> None:
     p.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
-    p.add_argument("--threads", type=_threads, default=2, help="CPU threads for torch (default 2)")
-
-
-def _threads(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if not 1 <= v <= 1024:
-        raise argparse.ArgumentTypeError(f"must be between 1 and 1024, got {v}")
-    return v
+    p.add_argument("--threads", type=_int_in(1, 1024), default=2, help="CPU threads for torch (default 2)")
 
 
 def _add_exposure(p) -> None:

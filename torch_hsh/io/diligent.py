@@ -213,6 +213,17 @@ def _read_names(path: Path) -> List[str]:
     return names
 
 
+def _check_images_left(source, left: int, n: int, drop_first: int, max_images: Optional[int], check: bool) -> None:
+    """``left`` of ``n`` images kept by ``drop_first`` / ``max_images``: none is an error, and so are fewer than 3
+    (with ``check``) when the options, not the source, removed them (the message says "images left after", which
+    the CLI reports as an error of those options)."""
+    if left == 0:
+        raise ValueError(f"{source}: no images left after drop_first={drop_first}, max_images={max_images}")
+    if check and left < 3 <= n and (drop_first or max_images is not None):
+        raise ValueError(f"{source}: {left} of its {n} images left after drop_first={drop_first}, "
+                         f"max_images={max_images}; photometric stereo needs at least 3")
+
+
 def _check_light_geometry(lights: np.ndarray, source, first_row: int, check_rank: bool = True) -> None:
     """Reject lights below the horizon (z <= 0) and sets of rank < 3 (one direction, or coplanar)."""
     below = np.nonzero(lights[:, 2] <= 0)[0]
@@ -364,11 +375,7 @@ def load_diligent(
 
     sel = slice(drop_first, None if max_images is None else drop_first + max_images)
     names, lights, intens = names[sel], lights[sel], intens[sel]
-    if len(names) == 0:
-        raise ValueError(f"{folder}: no images left after drop_first={drop_first}, max_images={max_images}")
-    if len(names) < 3 <= n and (drop_first or max_images is not None) and check_lights:  # the options' doing
-        raise ValueError(f"{folder}: {len(names)} of its {n} images left after drop_first={drop_first}, "
-                         f"max_images={max_images}; photometric stereo needs at least 3")
+    _check_images_left(folder, len(names), n, drop_first, max_images, check_lights)
     _check_light_geometry(lights, ldir_file, first_row=drop_first + 1, check_rank=check_lights)
 
     images = _read_images(folder, names, drop_first, np.float32 if dtype == torch.float32 else np.float64)

@@ -423,7 +423,7 @@ def load_rti(
         >>> data.images.shape, data.lights.shape  # doctest: +SKIP
         (torch.Size([48, 600, 800, 3]), torch.Size([48, 3]))
     """
-    from .diligent import _check_light_geometry
+    from .diligent import _check_images_left, _check_light_geometry
 
     p = Path(path)
     if p.is_file():
@@ -442,11 +442,7 @@ def load_rti(
     sel = slice(int(drop_first), stop)
     n = len(names)
     names, paths, lights = names[sel], paths[sel], lights[sel]
-    if not names:
-        raise ValueError(f"{lp_path}: no images left after drop_first={drop_first}, max_images={max_images}")
-    if len(names) < 3 <= n and (drop_first or max_images is not None) and check_lights:  # the options' doing
-        raise ValueError(f"{lp_path}: {len(names)} of its {n} images left after drop_first={drop_first}, "
-                         f"max_images={max_images}; photometric stereo needs at least 3")
+    _check_images_left(lp_path, len(names), n, drop_first, max_images, check_lights)
     _check_light_geometry(lights, lp_path, first_row=int(drop_first) + 1, check_rank=check_lights)
     images = _read_photographs(
         paths, lambda i, f: f"{lp_path}: image {names[i]!r} (number {i + 1 + int(drop_first)}) not found: {f}",

@@ -114,8 +114,7 @@ def check_inputs(images, lights, intensities=None, mask=None, valid=None, min_li
             f"`lights` has {lights.shape[0]} rows but `images` {tuple(images.shape)} has {L} along its first axis, "
             f"the lights axis of the (L, H, W, C) or (L, P, C) layout: the counts disagree{hint}"
         )
-    if mask is not None and isinstance(mask, torch.Tensor) and tuple(mask.shape) == tuple(images.shape[1:]) \
-            and images.dim() >= 3:
+    if isinstance(mask, torch.Tensor) and tuple(mask.shape) == tuple(images.shape[1:]):
         raise ValueError(
             f"`images` {tuple(images.shape)} has no channel axis (its pixel shape equals `mask`'s "
             f"{tuple(mask.shape)}): grey images are (L, H, W, 1); use images[..., None]"

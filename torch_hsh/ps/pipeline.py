@@ -274,12 +274,13 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     if bool(bad.any()):
         normals = normals.clone()
         normals[bad] = _fallback_normals(obs, n_init, bad)
-    info["fallback_pixels"] = float(bad.sum())
-    if 2 * int(bad.sum()) > bad.numel():
+    n_bad = int(bad.sum())
+    info["fallback_pixels"] = float(n_bad)
+    if 2 * n_bad > bad.numel():
         few = int((n_valid < MIN_VALID_OBSERVATIONS).sum())
-        failed = int(bad.sum()) - few
+        failed = n_bad - few
         warn_user(
-            f"{int(bad.sum())} of {bad.numel()} pixels keep a Lambertian normal and confidence 0 "
+            f"{n_bad} of {bad.numel()} pixels keep a Lambertian normal and confidence 0 "
             f"(info['fallback_pixels']): {few} have fewer than {MIN_VALID_OBSERVATIONS} valid observations of "
             f"{d.lights.shape[0]} lights" + (f", {failed} a failed fit" if failed else "") + ". Give more lights, "
             "or fewer dark or saturated observations.")

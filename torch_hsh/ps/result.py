@@ -141,11 +141,10 @@ class HSHResult:
             ValueError: not a saved :class:`HSHResult`, or a newer format version.
         """
         import json
+        import zipfile
         from pathlib import Path
 
         import numpy as np
-
-        import zipfile
 
         p = Path(path)
         if not p.is_file():
