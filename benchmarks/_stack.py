@@ -19,7 +19,7 @@ def ensure_stack(size: int, lights: int, folder=None) -> str:
     out = Path(folder or tempfile.gettempdir()) / f"torch_hsh_stack_{size}_{lights}"
     if (out / "images.npy").is_file():
         return str(out)
-    from torch_hsh import scenes
+    from torch_hsh.render import scenes
     from torch_hsh.brdf import BlinnPhong
     from torch_hsh.render import render
 

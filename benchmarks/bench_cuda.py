@@ -164,7 +164,7 @@ def _compiled(ps, dev, images, lights, gt, repeat):
 
 
 def _large_stack(size, n_lights, dev):
-    from torch_hsh import scenes
+    from torch_hsh.render import scenes
     from torch_hsh.brdf import BlinnPhong
     from torch_hsh.render import render
 

@@ -1,4 +1,4 @@
-"""Benchmark the photometric-stereo solvers on the demo scene (``torch_hsh.scenes.demo_scene``).
+"""Benchmark the photometric-stereo solvers on the demo scene (``torch_hsh.render.scenes.demo_scene``).
 
 Usage:
     python benchmarks/bench_demo.py                      # 128 x 128, 96 lights, seed 0, 2 threads
@@ -49,7 +49,9 @@ def main(argv=None):
         ap.error("--threads must be >= 1")
     torch.set_num_threads(args.threads)
 
-    from torch_hsh import ps, scenes
+    from torch_hsh import ps
+
+    from torch_hsh.render import scenes
 
     t0 = time.perf_counter()
     s = scenes.demo_scene(args.size, n_lights=args.lights, seed=args.seed, min_nz=args.min_nz)

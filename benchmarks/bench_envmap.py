@@ -1,4 +1,4 @@
-"""Benchmark of environment-map rendering: :func:`torch_hsh.envmap.render_envmap` vs the texel reference.
+"""Benchmark of environment-map rendering: :func:`torch_hsh.render.envmap.render_envmap` vs the texel reference.
 
 On ``--threads`` CPU threads (default 2), float32 unless stated:
 
@@ -43,7 +43,7 @@ if str(ROOT) not in sys.path:
 
 import torch_hsh  # noqa: E402
 from torch_hsh.brdf import CookTorranceGGX  # noqa: E402
-from torch_hsh.envmap import EnvironmentMap, equirect_directions, render_envmap, render_envmap_reference  # noqa: E402
+from torch_hsh.render.envmap import EnvironmentMap, equirect_directions, render_envmap, render_envmap_reference  # noqa: E402
 
 print = functools.partial(print, flush=True)  # noqa: A001  (a line per measurement, as it is taken)
 

@@ -26,9 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torch_hsh import ps, scenes
+from torch_hsh import ps
+
+from torch_hsh.render import scenes
 from torch_hsh.brdf import BlinnPhong
-from torch_hsh.io.rti import load_rti, save_rti, srgb_encode
+from torch_hsh.rti.io import load_rti, save_rti, srgb_encode
 from torch_hsh.render import render
 from torch_hsh.rti import evaluate_rti, fit_rti, project_to_rti, sphere_light_directions
 

@@ -5,7 +5,7 @@ with radius 0.8 covering 40 % of the image, order 3, random coefficients: incomp
 largest file such a result gives) and opens it in headless Chromium with SwiftShader WebGL2, as
 ``tests/test_viewer.py`` does, ``--repeats`` times, each with a fresh profile. The page records
 when its first frame is drawn (``data-first-frame-ms`` on ``document.body`` and one
-``console.info`` line, see :mod:`torch_hsh.viewer`); Chromium logs the line on stderr, where this
+``console.info`` line, see :mod:`torch_hsh.rti.viewer`); Chromium logs the line on stderr, where this
 script reads it. No virtual time: ``--virtual-time-budget`` would stop the page's clock.
 
 Per run, a line as soon as it is measured:
@@ -39,9 +39,9 @@ from pathlib import Path
 
 import torch
 
-from torch_hsh import scenes
+from torch_hsh.render import scenes
 from torch_hsh.ps import HSHResult
-from torch_hsh.viewer import write_viewer
+from torch_hsh.rti.viewer import write_viewer
 
 print = functools.partial(print, flush=True)  # a line per run as it is measured
 

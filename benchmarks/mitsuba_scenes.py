@@ -18,8 +18,8 @@ Radiometry. Images are linear HDR radiance (no tone mapping), written by
 ``torch_hsh.io.save_diligent`` as 16-bit PNGs with one scale for the whole stack (stored in
 ``light_intensities.txt``, so ``load_diligent(normalize_intensities=True)`` gives the images back
 as if every light had unit intensity). Each light's irradiance is an RGB value in [0.8, 1.2]
-(``torch_hsh.scenes.light_intensities``), like DiLiGenT's LEDs. Light directions are
-``torch_hsh.scenes.diligent_like_lights`` (a jittered 8 x 12-like grid up to 55 degrees from the
+(``torch_hsh.render.scenes.light_intensities``), like DiLiGenT's LEDs. Light directions are
+``torch_hsh.render.scenes.diligent_like_lights`` (a jittered 8 x 12-like grid up to 55 degrees from the
 view).
 
 Caching. Scenes are rendered on demand into a cache folder (``$TORCH_HSH_CACHE/mitsuba`` or
@@ -243,7 +243,7 @@ def render_arrays(name: str, size: int = 64, lights: int = 16, spp: int = 32, se
     """
     import torch
 
-    from torch_hsh.scenes import albedo_texture, diligent_like_lights, light_intensities
+    from torch_hsh.render.scenes import albedo_texture, diligent_like_lights, light_intensities
 
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; known: {', '.join(SCENES)}")

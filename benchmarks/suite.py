@@ -58,7 +58,7 @@ _MITSUBA_NAMES = ("folds_plastic", "grooves_conductor", "bowl_principled", "dome
 SUITE: List[Scene] = [
     *[Scene(n, "mitsuba", dict(MITSUBA_FULL)) for n in _MITSUBA_NAMES],
     Scene("demo", "synthetic", dict(size=128, lights=96, seed=0),
-          "torch_hsh.scenes.demo_scene(128, n_lights=96, seed=0): the `make demo` scene"),
+          "torch_hsh.render.scenes.demo_scene(128, n_lights=96, seed=0): the `make demo` scene"),
     Scene("bumpy_shadows", "synthetic", dict(size=64, lights=40, seed=1),
           "bumpy height field x 1.6, 40 lights in a 65 deg cone, Blinn-Phong, cast shadows + ambient 0.3"),
     Scene("bunny_specular", "capture", dict(folder="bunny_specular")),
@@ -103,7 +103,8 @@ def bumpy_shadows(size: int = 64, lights: int = 40, seed: int = 1) -> dict:
 
     from torch_hsh.brdf import BlinnPhong
     from torch_hsh.render import render_model
-    from torch_hsh.scenes import bumpy_heightfield, cast_shadow_mask, cone_lights, heightfield_normals
+    from torch_hsh.render.scenes import bumpy_heightfield, cone_lights, heightfield_normals
+    from torch_hsh.render.visibility import cast_shadow_mask
 
     f64 = torch.float64
     h = bumpy_heightfield(size, n_bumps=10, seed=seed, smoothness=0.12, dtype=f64) * 1.6
@@ -135,7 +136,7 @@ def synthetic_folder(scene: Scene, root: Optional[Path] = None) -> Path:
     except (OSError, ValueError):
         pass
     if scene.name == "demo":
-        from torch_hsh.scenes import demo_scene
+        from torch_hsh.render.scenes import demo_scene
 
         s = demo_scene(p["size"], n_lights=p["lights"], seed=p["seed"])
         inten = s["intensities"]

@@ -3,8 +3,8 @@
 The normals are known (a unit sphere, orthographic). The lighting is known: three Poly Haven
 maps, each also turned by 120 and 240 degrees about the up axis, giving 9 lighting conditions.
 The images are rendered from an analytic material by the brute-force reference
-(:func:`torch_hsh.envmap.render_envmap_reference`); the fitted models render them with
-:func:`torch_hsh.envmap.render_envmap` at SH order ``--light-order``. After fitting, the sphere is
+(:func:`torch_hsh.render.envmap.render_envmap_reference`); the fitted models render them with
+:func:`torch_hsh.render.envmap.render_envmap` at SH order ``--light-order``. After fitting, the sphere is
 relit under a held-out map (``pedestrian_overpass``) and compared with the reference render of
 the true material.
 
@@ -46,7 +46,7 @@ if str(ROOT) not in sys.path:
 
 import torch_hsh  # noqa: E402
 from torch_hsh.brdf import CookTorranceGGX  # noqa: E402
-from torch_hsh.envmap import EnvironmentMap, render_envmap, render_envmap_reference  # noqa: E402
+from torch_hsh.render.envmap import EnvironmentMap, render_envmap, render_envmap_reference  # noqa: E402
 
 TRAIN = ["venice_sunset_1k.exr", "overcast_soil_puresky_1k.exr", "royal_esplanade_1k.exr"]
 HELD_OUT = "pedestrian_overpass_1k.exr"
@@ -66,7 +66,7 @@ SYNTHETIC = [
 
 def synthetic_map(sun, sun_rgb, sky_rgb, ground_rgb, height: int = 32) -> EnvironmentMap:
     """A procedural sky: brighter towards the zenith, a darker ground, a sun lobe ``exp(40 (d . s - 1))``."""
-    from torch_hsh.envmap import equirect_directions
+    from torch_hsh.render.envmap import equirect_directions
 
     d = equirect_directions(height, 2 * height, dtype=DT)
     s = torch.nn.functional.normalize(torch.tensor(sun, dtype=DT), dim=0)

@@ -1,6 +1,6 @@
 """Render a synthetic RTI capture: photographs of an object beside a glossy black sphere, plus an .lp file.
 
-The object is the photometric-stereo demo scene (``torch_hsh.scenes.demo_scene``: a bumpy sphere with
+The object is the photometric-stereo demo scene (``torch_hsh.render.scenes.demo_scene``: a bumpy sphere with
 GGX and Blinn-Phong regions over a texture, cast shadows); the sphere on its right is a glossy black
 Blinn-Phong ball for highlight RTI. The images are written as 8-bit sRGB PNGs (``--format jpg`` for
 JPEGs) with ``mask.png`` (the object), ``sphere_mask.png`` (the sphere, outside the object mask),
@@ -12,7 +12,7 @@ Then, as in docs/rti.md::
     python examples/rti_capture.py --out results/rti_capture
     torch-hsh lights results/rti_capture --sphere-mask results/rti_capture/sphere_mask.png \\
         --out results/rti_capture/lights.lp --overwrite
-    torch-hsh ps --data results/rti_capture --out results/rti_ps
+    torch-hsh ps results/rti_capture --out results/rti_ps
     torch-hsh rti results/rti_ps --terms 9 --rti results/rti_capture.rti --relight results/rti_relight
 """
 from __future__ import annotations
@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torch_hsh import scenes
+from torch_hsh.render import scenes
 from torch_hsh.brdf import BlinnPhong
 from torch_hsh.io.diligent import _write_png
-from torch_hsh.io.rti import save_rti
+from torch_hsh.rti.io import save_rti
 from torch_hsh.render import render
 
 

@@ -181,7 +181,7 @@ def tiny_diligent(folder: Path, size: int = 32, lights: int = 20, seed: int = 0)
     """A small DiLiGenT-layout object folder of the library's demo scene (bumpy sphere, GGX and Blinn-Phong
     regions, cast shadows, noise), written by ``torch_hsh.io.save_diligent``; built in, no shared data."""
     from torch_hsh.io import save_diligent
-    from torch_hsh.scenes import demo_scene
+    from torch_hsh.render.scenes import demo_scene
 
     s = demo_scene(size, n_lights=lights, seed=seed)
     inten = s["intensities"]

@@ -440,7 +440,7 @@ def test_thread_pool_survives_fork():
     fork-safe (which is why DataLoader workers run on one torch thread)."""
     code = (
         "import os, numpy as np, torch, torch_hsh\n"
-        "from torch_hsh import _native, basis\n"
+        "from torch_hsh import _native, kernel as basis\n"
         "torch.set_num_threads(2)\n"
         "n = 20000\n"
         "d = torch.nn.functional.normalize(torch.rand(n, 3), dim=-1); e = d.flip(0).contiguous()\n"

@@ -176,7 +176,7 @@ def test_objective_floor_surface_loss_of_a_plane():
 def _small_scene():
     from types import SimpleNamespace
 
-    from torch_hsh.scenes import demo_scene
+    from torch_hsh.render.scenes import demo_scene
 
     sc = demo_scene(24, n_lights=16, seed=0, dtype=torch.float64)
     return SimpleNamespace(images=sc["images"] / sc["intensities"][:, None, None, :], lights=sc["lights"],

@@ -1,4 +1,4 @@
-"""Tests of environment lighting (torch_hsh.envmap)."""
+"""Tests of environment lighting (torch_hsh.render.envmap)."""
 import math
 
 import numpy as np
@@ -10,7 +10,7 @@ from torch_hsh import render as R
 from torch_hsh.kernel import helmholtz_isotropic
 from torch_hsh.bases.westin import real_sh
 from torch_hsh.brdf import Lambertian
-from torch_hsh.envmap import (
+from torch_hsh.render.envmap import (
     EnvironmentMap,
     envmap_shading_table,
     equirect_directions,
@@ -20,7 +20,7 @@ from torch_hsh.envmap import (
     sh_coefficients,
     sh_evaluate,
 )
-from torch_hsh.envmap import _rot_x, _rot_y, _rot_z, _sh_rotation_matrix
+from torch_hsh.render.envmap import _rot_x, _rot_y, _rot_z, _sh_rotation_matrix
 
 DT = torch.float64
 
@@ -372,7 +372,7 @@ def test_from_exr_reads_the_layout(tmp_path):
 
 
 def test_environment_lighting_module_learns_the_light():
-    from torch_hsh.envmap import EnvironmentLighting
+    from torch_hsh.render.envmap import EnvironmentLighting
 
     env = _sky(8, 16)
     n = _normals(64, seed=12)

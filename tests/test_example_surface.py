@@ -6,7 +6,7 @@ import torch
 
 from torch_hsh.io import read_exr
 from torch_hsh.io.diligent import save_diligent
-from torch_hsh.scenes import sphere_normals
+from torch_hsh.render.scenes import sphere_normals
 from torch_hsh.surface import integrate_normals
 
 from _scripts import load_example

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from torch_hsh import cli
+from torch_hsh.cli import fit as fit_cli
 from torch_hsh.brdf import CookTorranceGGX, Lambertian
 from torch_hsh.io import merl
 from torch_hsh.io.merl import fit_merl, tabulate_merl, write_merl
@@ -107,7 +108,7 @@ def test_out_is_checked_before_the_fit(tmp_path, capsys, ggx_file, no_fit, monke
     def refuse(*a, **k):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(cli.tempfile, "mkstemp", refuse)
+    monkeypatch.setattr(fit_cli.tempfile, "mkstemp", refuse)
     code, _, err = _run(["fit", str(ggx_file), "--out", str(tmp_path / "new" / "a.npz"), "--quiet"], capsys)
     assert code == 2 and "cannot write into" in err.splitlines()[-1]
     assert not (tmp_path / "new").exists()

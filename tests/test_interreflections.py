@@ -4,7 +4,9 @@ import math
 import pytest
 import torch
 
-from torch_hsh import ps, scenes
+from torch_hsh import ps
+
+from torch_hsh.render import scenes
 from torch_hsh.ps.interreflections import one_bounce
 
 F64 = torch.float64

@@ -1,12 +1,14 @@
-"""Tests for torch_hsh.io.rti: .lp files, RTI capture folders (8-bit photographs, sRGB), and
-``torch-hsh ps --data`` on such a folder. Small synthetic scenes only."""
+"""Tests for torch_hsh.rti.io: .lp files, RTI capture folders (8-bit photographs, sRGB), and
+``torch-hsh ps CAPTURE`` on such a folder. Small synthetic scenes only."""
 import numpy as np
 import pytest
 import torch
 
-from torch_hsh import cli, ps, scenes
+from torch_hsh import cli, ps
+
+from torch_hsh.render import scenes
 from torch_hsh.brdf import BlinnPhong
-from torch_hsh.io.rti import (
+from torch_hsh.rti.io import (
     find_lp,
     is_rti_folder,
     load_rti,
@@ -159,7 +161,7 @@ def test_ps_cli_accepts_an_rti_folder(tmp_path, capsys, monkeypatch):
                                 mask=mask, order=1, lights=lights, runtime_s=0.0)
 
     monkeypatch.setattr(ps, "solve_hsh", solve)
-    metrics = cli.main(["ps", "--data", str(cap), "--out", str(tmp_path / "res"), "--quiet"])
+    metrics = cli.main(["ps", str(cap), "--out", str(tmp_path / "res"), "--quiet"])
     assert metrics == 0
     assert (tmp_path / "res" / "normals.npy").is_file()
     got = seen["images"]
@@ -169,11 +171,11 @@ def test_ps_cli_accepts_an_rti_folder(tmp_path, capsys, monkeypatch):
     cos = (torch.as_tensor(lam).double() * normals).sum(-1)[mask & (normals[..., 2] > 0.5)]
     assert float(torch.rad2deg(torch.arccos(cos.clamp(max=1))).mean()) < 10  # sRGB removed: sensible normals
     # --linear reaches the reader (codes are then not linearised)
-    cli.main(["ps", "--data", str(cap), "--out", str(tmp_path / "res2"), "--quiet", "--linear"])
+    cli.main(["ps", str(cap), "--out", str(tmp_path / "res2"), "--quiet", "--linear-input"])
     assert float((seen["images"].double() - got.double()).abs().max()) > 0.1
     # too few images left by --drop-first is the options' doing (exit 2), not the .lp file's
     with pytest.raises(SystemExit) as e:
-        cli.main(["ps", "--data", str(cap), "--out", str(tmp_path / "res3"), "--quiet",
+        cli.main(["ps", str(cap), "--out", str(tmp_path / "res3"), "--quiet",
                   "--drop-first", str(len(imgs) - 2)])
     err = capsys.readouterr().err
     assert e.value.code == 2 and "--drop-first/--max-images" in err and f"2 of its {len(imgs)} images left" in err, err
@@ -200,7 +202,7 @@ def test_ps_cli_bad_rti_inputs_exit_1_naming_the_file(tmp_path, capsys, case, ms
 
         Image.fromarray(np.zeros((5, 5, 3), np.uint8)).save(cap / "img_002.png")
     with pytest.raises(SystemExit) as e:
-        cli.main(["ps", "--data", str(cap), "--out", str(tmp_path / "res"), "--quiet"])
+        cli.main(["ps", str(cap), "--out", str(tmp_path / "res"), "--quiet"])
     assert e.value.code == 1
     err = capsys.readouterr().err
     assert msg in err and "Traceback" not in err

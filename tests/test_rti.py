@@ -14,10 +14,13 @@ import numpy as np
 import pytest
 import torch
 
-from torch_hsh import cli, hsh, scenes
+from torch_hsh import cli, hsh
+from torch_hsh.cli.result_folder import is_result_folder
+
+from torch_hsh.render import scenes
 from torch_hsh.brdf import BlinnPhong
 from torch_hsh.io.diligent import _write_png, save_diligent
-from torch_hsh.io.rti import read_lp, save_relight, save_rti, srgb_encode, write_rti_hsh
+from torch_hsh.rti.io import read_lp, save_relight, save_rti, srgb_encode, write_rti_hsh
 from torch_hsh.render import render, render_coefficients
 from torch_hsh.rti import (
     OPENLIME_THETA_CLAMP,
@@ -370,7 +373,7 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
     assert cli.main(["lights", str(cap), "--sphere-mask", str(tmp_path / "sphere.png"), "--out",
                      str(cap / "lights.lp"), "--overwrite", "--quiet"]) == 0
     assert float(angles(read_lp(cap / "lights.lp")[2], lights).max()) < 1.0
-    assert cli.main(["ps", "--data", str(cap), "--out", str(tmp_path / "res"), "--quiet", "--order", "2",
+    assert cli.main(["ps", str(cap), "--out", str(tmp_path / "res"), "--quiet", "--order", "2",
                      "--materials", "0"]) == 0
     assert cli.main(["rti", str(tmp_path / "res"), "--terms", "9", "--rti", str(tmp_path / "o.rti"),
                      "--relight", str(tmp_path / "o_relight"), "--quiet"]) == 0
@@ -401,7 +404,7 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:  # nor the result folder itself as a --relight folder, even with --overwrite
         cli.main(["rti", str(tmp_path / "res"), "--relight", str(tmp_path / "res"), "--overwrite", "--quiet"])
     assert e.value.code == 2 and "is a torch-hsh ps result folder" in capsys.readouterr().err
-    assert cli.is_result_folder(tmp_path / "res")
+    assert is_result_folder(tmp_path / "res")
     with pytest.raises(SystemExit) as e:  # a missing folder for the .rti file: an argument error, before the projection
         cli.main(["rti", str(tmp_path / "res"), "--rti", str(tmp_path / "no_dir" / "o.rti"), "--quiet"])
     assert e.value.code == 2 and "no_dir does not exist" in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""Tests for torch_hsh.scenes (synthetic geometry, materials, lights, cast shadows)."""
+"""Tests for torch_hsh.render.scenes (synthetic geometry, materials, lights, cast shadows)."""
 import math
 
 import numpy as np
@@ -6,11 +6,10 @@ import pytest
 import scipy.ndimage
 import torch
 
-from torch_hsh.scenes import (
+from torch_hsh.render.scenes import (
     TEXTURE_SOURCES,
     albedo_texture,
     bumpy_heightfield,
-    cast_shadow_mask,
     cone_lights,
     demo_scene,
     diligent_like_lights,
@@ -20,6 +19,7 @@ from torch_hsh.scenes import (
     sphere_normals,
     srgb_to_linear,
 )
+from torch_hsh.render.visibility import cast_shadow_mask
 
 
 def _grid(h, w, dtype=torch.float64):

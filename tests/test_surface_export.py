@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torch_hsh.io import read_exr
-from torch_hsh.scenes import sphere_normals
+from torch_hsh.render.scenes import sphere_normals
 from torch_hsh.surface import depth_to_mesh, integrate_normals, save_depth, save_mesh, shade_depth
 
 

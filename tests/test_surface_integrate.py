@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_hsh.scenes import sphere_normals
+from torch_hsh.render.scenes import sphere_normals
 from torch_hsh.surface import (
     connected_components,
     depth_to_normals,

@@ -4,7 +4,8 @@ import math
 import pytest
 import torch
 
-from torch_hsh.scenes import bumpy_heightfield, cast_shadow_mask, diligent_like_lights, heightfield_normals
+from torch_hsh.render.scenes import bumpy_heightfield, diligent_like_lights, heightfield_normals
+from torch_hsh.render.visibility import cast_shadow_mask
 from torch_hsh.surface import integrate_normals, light_visibility
 
 

@@ -1,4 +1,4 @@
-"""Tests for torch_hsh.viewer / ``torch-hsh view``: the generated GLSL basis equals the library's
+"""Tests for torch_hsh.rti.viewer / ``torch-hsh view``: the generated GLSL basis equals the library's
 isotropic Helmholtz basis, and screenshots of the page in a real headless Chromium (SwiftShader
 WebGL2) match the library's own render at three light directions (< 2/255 RMS inside the mask).
 
@@ -12,10 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from torch_hsh import cli, helmholtz_isotropic_world, scenes
-from torch_hsh.io.rti import srgb_encode
+from torch_hsh import cli, helmholtz_isotropic_world
+
+from torch_hsh.render import scenes
+from torch_hsh.rti.io import srgb_encode
 from torch_hsh.ps import HSHResult
-from torch_hsh.viewer import _eval_program, glsl_isotropic_basis, write_viewer
+from torch_hsh.rti.viewer import _eval_program, glsl_isotropic_basis, write_viewer
 
 CHROMIUM = next((shutil.which(c) for c in ("chromium", "chromium-browser", "google-chrome") if shutil.which(c)), None)
 needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (apt-get install chromium); "

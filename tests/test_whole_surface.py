@@ -5,7 +5,9 @@ import math
 import pytest
 import torch
 
-from torch_hsh import ps, scenes
+from torch_hsh import ps
+
+from torch_hsh.render import scenes
 from torch_hsh.ps import Settings
 from torch_hsh.ps import whole_surface as ws
 from torch_hsh.surface import depth_to_normals

@@ -233,7 +233,7 @@ def iso_pair_gather(order: int, col: Dict[Tuple[int, int], int]):
     zero column ``L``) and of ``Y = [Theta G / sqrt2, Theta G]`` (``2L`` columns). Column
     ``k = (p, r, q)`` of the basis is ``X[i1] * Y[j1] + X[i2] * Y[j2]``: the normalisation
     ``1/sqrt(2 + 2 delta_pr)`` is folded into ``Y`` (``p == r``: one product, the second term
-    hits the zero column). Used by the kernels here and by :mod:`torch_hsh.envmap`.
+    hits the zero column). Used by the kernels here and by :mod:`torch_hsh.render.envmap`.
     """
     L = len(col)
     i1, j1, i2, j2 = [], [], [], []

@@ -16,11 +16,11 @@ N = 12, (b) low-frequency map + glossy material at N = 6, plus the two other pai
 same orders (c, d).
 
 * **Ground truth**: the analytic BRDF integrated by
-  :func:`torch_hsh.envmap.render_envmap_reference` over the map downsampled (power-preserving)
+  :func:`torch_hsh.render.envmap.render_envmap_reference` over the map downsampled (power-preserving)
   to ``--gt-height`` x 2 ``--gt-height`` texels.
 * **Approximations**: the BRDF projected at P = 8 (deterministic quadrature,
   :func:`torch_hsh.project`) onto three bases:
-  * the isotropic Helmholtz basis, rendered with :func:`torch_hsh.envmap.render_envmap`
+  * the isotropic Helmholtz basis, rendered with :func:`torch_hsh.render.envmap.render_envmap`
     (lighting truncated to SH order N);
   * Westin SH (``westin_sh_isotropic``) and Koenderink-van Doorn Zernike
     (``koenderink_zernike``), rendered with the reference integrator under the same map
@@ -62,7 +62,7 @@ import _common as C  # noqa: E402
 import torch_hsh  # noqa: E402
 from torch_hsh.bases import get_basis  # noqa: E402
 from torch_hsh.brdf import CookTorranceGGX, OrenNayar  # noqa: E402
-from torch_hsh.envmap import EnvironmentMap, render_envmap, render_envmap_reference  # noqa: E402
+from torch_hsh.render.envmap import EnvironmentMap, render_envmap, render_envmap_reference  # noqa: E402
 
 DT = torch.float64
 BASES = ["helmholtz_isotropic", "westin_sh_isotropic", "koenderink_zernike"]
@@ -79,7 +79,7 @@ MAX_EVALUATIONS = 1 << 28
 
 def builtin_maps(height: int):
     """Synthetic stand-ins for the two maps (``--quick``): ``high`` has a small sun, ``low`` is smooth."""
-    from torch_hsh.envmap import equirect_directions
+    from torch_hsh.render.envmap import equirect_directions
 
     d = equirect_directions(height, 2 * height, dtype=DT)
     up = d[..., 1:2]

@@ -67,7 +67,7 @@ from __future__ import annotations
 
 from .albedo import directional_albedo
 from .arguments import BasisLike, default_quadrature_sizes, infer_order
-from .coefficients import ENERGY_EXCESS_TOLERANCE, energy_accuracy, evaluate, reconstruct, truncate
+from .coefficients import ENERGY_EXCESS_TOLERANCE, energy_accuracy, reconstruct, truncate
 from .convergence import ConvergenceError, ConvergenceWarning
 from .least_squares import fit
 from .normal_exitance import _theta_table, normal_exitance_energy, normal_exitance_to_isotropic, project_normal_exitance
@@ -80,7 +80,6 @@ __all__ = [
     "normal_exitance_energy",
     "fit",
     "reconstruct",
-    "evaluate",
     "truncate",
     "energy_accuracy",
     "brdf_energy",

@@ -8,7 +8,7 @@ import torch
 from .._checks import broadcast_shapes, check_dirs, check_same, check_tensor, validation_enabled
 from .arguments import _DEFAULT, BasisLike, _basis, _order_of
 
-__all__ = ["reconstruct", "evaluate", "truncate", "energy_accuracy", "ENERGY_EXCESS_TOLERANCE"]
+__all__ = ["reconstruct", "truncate", "energy_accuracy", "ENERGY_EXCESS_TOLERANCE"]
 
 
 def reconstruct(
@@ -63,9 +63,6 @@ def reconstruct(
     broadcast_shapes([("coeffs[..., K]", coeffs.shape[:-1]), ("wi/wo", B.shape[:-1])])
     return (B * coeffs).sum(-1)
 
-
-#: Alias of :func:`reconstruct`.
-evaluate = reconstruct
 
 
 def truncate(

@@ -6,7 +6,6 @@ Each format lives in its own submodule, imported below in its own block
     torch_hsh.io.merl      MERL BRDF ``.binary`` tables (read_merl, write_merl, MERLBRDF, tabulate_merl, fit_merl)
     torch_hsh.io.diligent  DiLiGenT-layout photometric-stereo folders (load_diligent, save_diligent)
     torch_hsh.io.exr       OpenEXR images, image stacks, normal / coefficient maps, environment maps
-    torch_hsh.io.rti       RTI captures: .lp light files and photographs (read_lp, write_lp, load_rti, save_rti)
 
 Naming rule: functions on a **folder** are ``load_*`` / ``save_*``
 (``load_diligent``, ``save_diligent``); functions on a **single file** are
@@ -43,8 +42,3 @@ from . import exr  # noqa: E402,F401
 from .exr import *  # noqa: E402,F401,F403
 
 __all__ += ["exr"] + list(exr.__all__)
-
-from . import rti  # noqa: E402,F401
-from .rti import *  # noqa: E402,F401,F403
-
-__all__ += ["rti"] + list(rti.__all__)

@@ -222,7 +222,7 @@ def interreflection_loop(solve: Callable, images: torch.Tensor, lights: torch.Te
     ``interreflection_confidence_before`` (first solve) / ``_after`` (last round's solve) and
     ``interreflection_accepted`` (1 or 0: the last round's decision, also when the safeguard is off).
     """
-    from ..render import _intensities
+    from ..render.images import _intensities
     if images.dim() != 4:
         raise ValueError("`interreflections` (one round by default with `refine_surface`) needs images of shape "
                          f"(L, H, W, C), got {tuple(images.shape)}")

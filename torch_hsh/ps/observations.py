@@ -21,7 +21,7 @@ from typing import Dict, Optional, Tuple
 import torch
 
 from .._checks import check_dirs, check_shape, check_tensor, warn_user
-from ..render import _intensities
+from ..render.images import _intensities
 from ._chunks import row_sum
 from .settings import Settings, check_dark_fraction, check_noise_sigma, check_saturation
 

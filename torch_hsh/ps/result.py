@@ -15,7 +15,7 @@ import torch
 
 from ..bases.helmholtz import albedo_terms
 from ..kernel import _polar_table, num_isotropic
-from ..render import order_from_num_coefficients, render_coefficients
+from ..render.images import order_from_num_functions, render_coefficients
 from ._chunks import row_sum
 
 __all__ = ["HSHResult", "HoldoutResult", "confidence", "directional_albedo_view"]
@@ -264,7 +264,7 @@ def directional_albedo_view(coefficients: torch.Tensor, cos_o: torch.Tensor) -> 
     """
     K = coefficients.shape[-1]
 
-    order = order_from_num_coefficients(K)
+    order = order_from_num_functions(K)
     lead = cos_o.shape
     D = _albedo_vector(order, cos_o.reshape(-1).to(coefficients.dtype))  # (N, K)
     a = coefficients.reshape(-1, coefficients.shape[-2], K)

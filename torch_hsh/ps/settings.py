@@ -332,7 +332,7 @@ class Settings:
         _check_calibration_starts,
         cli={"flag": "--flattened-starts", "const": ("lambertian", "independent", "flattened"),
              "help": "two more calibration starts with flattened Lambertian normals (opt-in, about +25%% time; "
-                     "see docs/photometric_stereo.md)"})
+                     "helps objects whose highlights steepen a Lambertian fit)"})
     dark_fraction: float = _option(0.05, "dark threshold, see :func:`~torch_hsh.ps.observation_weights`.",
                                    check_dark_fraction)
     noise_sigma: Optional[float] = _option(
@@ -441,8 +441,7 @@ class Settings:
         in ``docs/photometric_stereo.md``. ``info["basis_ridge"]`` records it.""", _check_basis_ridge,
         cli={"flag": "--basis-ridge", "type": ("float", 0.0, 1.0, True),
              "help": "relative ridge on the shared basis BRDFs (default torch_hsh.ps.DEFAULT_BASIS_RIDGE, 3e-3); "
-                     "1e-3 fits sharp specular lobes better but lets the result depend on the calibration seed "
-                     "(see docs/photometric_stereo.md)"})
+                     "1e-3 fits sharp specular lobes better but lets the result depend on the calibration seed"})
     cauchy_c: float = _option(CAUCHY_C, "Cauchy constant of every robust reweighting.", internal=True)
     chunk_auto: bool = _option(False, "True when ``chunk_size`` was chosen by :func:`resolve_chunk` (it may then "
                                       "shrink on out-of-memory).", internal=True)

@@ -1,12 +1,12 @@
 r"""Normal integration: from a normal map over a mask to a depth map.
 
-Conventions (the DiLiGenT frame of :mod:`torch_hsh.scenes`): ``x`` to the
+Conventions (the DiLiGenT frame of :mod:`torch_hsh.render.scenes`): ``x`` to the
 right, ``y`` up, ``z`` toward the camera; orthographic view. Pixel ``(row,
 col)`` is at ``x = col``, ``y = -row`` (pixel units), and the returned
 "depth" is the **height** ``z(row, col)`` of the surface in pixel units
 (larger = closer to the camera), exactly the height fields of
-:func:`torch_hsh.scenes.heightfield_normals` and
-:func:`torch_hsh.scenes.cast_shadow_mask` with ``pixel_size=1``. A unit
+:func:`torch_hsh.render.scenes.heightfield_normals` and
+:func:`torch_hsh.render.visibility.cast_shadow_mask` with ``pixel_size=1``. A unit
 normal ``n`` gives the slopes ``dz/dcol = -n_x / n_z`` and ``dz/drow =
 +n_y / n_z`` (rows grow downward, ``y`` upward).
 
@@ -598,7 +598,7 @@ def integrate_normals(
         ``(depth, info)``. Not differentiable (the normals are detached).
 
     Example:
-        >>> from torch_hsh.scenes import sphere_normals
+        >>> from torch_hsh.render.scenes import sphere_normals
         >>> n, m = sphere_normals(64, dtype=torch.float64)
         >>> z = integrate_normals(n, m)
         >>> bool(z[32, 32] > z[32, 10] > z[32, 4])  # a dome: highest in the middle

@@ -5,7 +5,7 @@ Frame and units as in :mod:`torch_hsh.surface.integrate`: DiLiGenT frame
 pixel units, lights ``(L, 3)`` pointing toward the light.
 
 Method: the library's own ray marcher,
-:func:`torch_hsh.scenes.cast_shadow_mask` (one-pixel steps along the light's
+:func:`torch_hsh.render.visibility.cast_shadow_mask` (one-pixel steps along the light's
 image-plane direction, bilinear height samples). Only the masked surface
 occludes: pixels outside the mask are given the lowest masked height, which
 is below every ray (rays start on the surface and rise), so nothing outside
@@ -26,7 +26,7 @@ from typing import Optional
 import torch
 
 from .._checks import check_dirs, check_shape, check_tensor
-from ..scenes import cast_shadow_mask
+from ..render.visibility import cast_shadow_mask
 from .integrate import _check_mask
 
 __all__ = ["light_visibility"]

@@ -83,10 +83,10 @@ from typing import Callable, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from ._checks import broadcast_shapes, check_dirs, check_order, check_same, check_shape, check_tensor
-from .kernel import hsh, iso_pair_gather
-from .bases.westin import _sh_gather, _sh_polar, complex_powers, real_sh
-from .render import brdf_cosine, order_from_num_coefficients
+from .._checks import broadcast_shapes, check_dirs, check_order, check_same, check_shape, check_tensor
+from ..kernel import hsh, iso_pair_gather
+from ..bases.westin import _sh_gather, _sh_polar, complex_powers, real_sh
+from .images import brdf_cosine, order_from_num_functions
 
 __all__ = [
     "EnvironmentMap",
@@ -433,7 +433,7 @@ class EnvironmentMap:
             >>> env.shape  # doctest: +SKIP
             (512, 1024, 3)
         """
-        from .io.exr import read_envmap
+        from ..io.exr import read_envmap
 
         arr = np.ascontiguousarray(read_envmap(path), dtype=np.float64)
         if not np.isfinite(arr).all():
@@ -706,7 +706,7 @@ def render_envmap(
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise ValueError(f"`chunk_size` must be a positive integer, got {chunk_size!r}")
     L, N = _lighting_coefficients(env, light_order, normals)
-    P = order_from_num_coefficients(coefficients.shape[-1])
+    P = order_from_num_functions(coefficients.shape[-1])
     Ca, Cl = coefficients.shape[-2], L.shape[0]
     if Ca != Cl and Ca != 1 and Cl != 1:
         raise ValueError(f"channel mismatch: `coefficients` has C={Ca} but the lighting has C={Cl} (need equal or 1)")

@@ -26,8 +26,8 @@ Conventions (where each one comes from):
   this frame. Directions are normalised on reading.
 * **Pixel values** -- RTI photographs are display-encoded (sRGB) 8-bit images.
   Photometric stereo needs linear radiance, so the sRGB transfer curve
-  (IEC 61966-2-1, :func:`torch_hsh.scenes.srgb_to_linear`) is **removed** on
-  reading unless ``linear=True`` (``--linear``: the images are already linear,
+  (IEC 61966-2-1, :func:`torch_hsh.render.scenes.srgb_to_linear`) is **removed** on
+  reading unless ``linear=True`` (``torch-hsh ps --linear-input``: the images are already linear,
   e.g. 16-bit exports from a raw converter with a linear curve). The choice is
   explicit: there is no guessing from the bit depth.
 
@@ -67,7 +67,7 @@ code copied; RTIViewer is GPL, this package MIT):
   layout is written for 9 terms only.
 
 Example:
-    >>> from torch_hsh.io.rti import load_rti, save_rti  # doctest: +SKIP
+    >>> from torch_hsh.rti.io import load_rti, save_rti  # doctest: +SKIP
     >>> save_rti("capture", images, lights)              # doctest: +SKIP
     >>> data = load_rti("capture")                       # doctest: +SKIP
 """
@@ -82,7 +82,7 @@ import numpy as np
 import torch
 
 from .._checks import check_shape
-from .diligent import PhotometricDataset, _output_folder, _read_png, _read_text, _to_numpy, _write_png
+from ..io.diligent import PhotometricDataset, _output_folder, _read_png, _read_text, _to_numpy, _write_png
 
 __all__ = [
     "read_lp",
@@ -104,7 +104,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".png")
 
 
 # --------------------------------------------------------------------------- #
-# sRGB transfer (numpy; the torch version is torch_hsh.scenes.srgb_to_linear)
+# sRGB transfer (numpy; the torch version is torch_hsh.render.scenes.srgb_to_linear)
 # --------------------------------------------------------------------------- #
 def srgb_decode(x: np.ndarray) -> np.ndarray:
     """sRGB-encoded values in ``[0, 1]`` to linear (IEC 61966-2-1), any shape.
@@ -423,7 +423,7 @@ def load_rti(
         >>> data.images.shape, data.lights.shape  # doctest: +SKIP
         (torch.Size([48, 600, 800, 3]), torch.Size([48, 3]))
     """
-    from .diligent import _check_images_left, _check_light_geometry
+    from ..io.diligent import _check_images_left, _check_light_geometry
 
     p = Path(path)
     if p.is_file():
@@ -503,10 +503,10 @@ def save_rti(
         The folder.
 
     Example:
-        >>> from torch_hsh import scenes, render
+        >>> from torch_hsh.render import render, scenes
         >>> n, m = scenes.sphere_normals(32)
         >>> li = scenes.diligent_like_lights(8, seed=0)
-        >>> imgs = render.render(n, li, lambda wi, wo: torch.full(wi.shape[:-1] + (3,), 0.3))
+        >>> imgs = render(n, li, lambda wi, wo: torch.full(wi.shape[:-1] + (3,), 0.3))
         >>> save_rti(tmp_path / "cap", imgs, li, mask=m)  # doctest: +SKIP
     """
     from PIL import Image

@@ -1,6 +1,6 @@
 r"""Reflectance Transformation Imaging (RTI): light directions from a sphere, and the RTI HSH basis.
 
-Two tools for users of RTI captures (see :mod:`torch_hsh.io.rti` for the files):
+Two tools for users of RTI captures (see :mod:`torch_hsh.rti.io` for the files):
 
 * :func:`sphere_light_directions` -- highlight RTI: each photograph's light
   direction from the specular highlight on a glossy sphere in the frame.
@@ -17,7 +17,7 @@ Frames and pixel coordinates:
   ``-z``; the view direction is ``v = (0, 0, 1)``.
 * Image positions (sphere centre, highlight) are ``(x, y) = (column, row)`` in
   pixels with the centre of pixel ``(row 0, column 0)`` at ``(0, 0)``; rows go
-  **down**. The scene sphere of :func:`torch_hsh.scenes.sphere_normals` of size
+  **down**. The scene sphere of :func:`torch_hsh.render.scenes.sphere_normals` of size
   ``H x W`` and radius fraction ``f`` is the circle ``cx = W/2 - 1/2``,
   ``cy = H/2 - 1/2``, ``r = f min(H, W) / 2``.
 
@@ -65,7 +65,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from ._checks import check_shape
+from .._checks import check_shape
 
 __all__ = [
     "SphereLights",
@@ -123,7 +123,7 @@ def sphere_circle_from_mask(mask) -> Tuple[float, float, float]:
         ValueError: the mask selects fewer than 12 pixels ("no sphere").
 
     Example:
-        >>> from torch_hsh import scenes
+        >>> from torch_hsh.render import scenes
         >>> _, m = scenes.sphere_normals(64, radius=0.5)
         >>> [round(v, 1) for v in sphere_circle_from_mask(m)]
         [31.5, 31.5, 16.1]
@@ -173,12 +173,12 @@ def sphere_light_directions(
             (its index is named).
 
     Example:
-        >>> from torch_hsh import scenes, render
+        >>> from torch_hsh.render import render, scenes
         >>> from torch_hsh.brdf import BlinnPhong
         >>> n, m = scenes.sphere_normals(96, radius=0.8, dtype=torch.float64)
         >>> li = torch.tensor([[0.3, 0.2, 0.933]], dtype=torch.float64)
         >>> one = torch.ones(96, 96, 1, dtype=torch.float64)
-        >>> img = render.render(n, li, BlinnPhong(0.05 * one, one, 400 * one))
+        >>> img = render(n, li, BlinnPhong(0.05 * one, one, 400 * one))
         >>> est = sphere_light_directions(img, mask=m)
         >>> float(torch.rad2deg(torch.arccos((torch.as_tensor(est.lights) * li / li.norm()).sum()))) < 1
         True
@@ -409,7 +409,7 @@ def project_to_rti(
         >>> abs(float(evaluate_rti(c, l)[0, 0, 0]) - 0.8) < 0.01
         True
     """
-    from .render import render_coefficients
+    from ..render.images import render_coefficients
 
     terms = _check_terms(terms)
     if transfer not in ("srgb", "linear"):
@@ -470,7 +470,7 @@ def fit_rti(
         ``(*S, C, terms)`` float64.
 
     Example:
-        >>> from torch_hsh import scenes
+        >>> from torch_hsh.render import scenes
         >>> li = scenes.cone_lights(30, 80.0, seed=0, dtype=torch.float64)
         >>> c0 = torch.randn(4, 3, 9, dtype=torch.float64)
         >>> c = fit_rti(evaluate_rti(c0, li), li, ridge=0.0)

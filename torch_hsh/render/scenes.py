@@ -21,7 +21,8 @@ from typing import Optional, Tuple, Union
 import torch
 import torch.nn.functional as F
 
-from ._checks import check_count, check_dirs, check_shape, check_tensor
+from .._checks import check_count, check_dirs, check_shape, check_tensor
+from .visibility import _positive, cast_shadow_mask
 
 __all__ = [
     "sphere_normals",
@@ -34,8 +35,8 @@ __all__ = [
     "diligent_like_lights",
     "cone_lights",
     "light_intensities",
-    "cast_shadow_mask",
     "demo_scene",
+    "synthetic_scene",
 ]
 
 #: ``skimage.data`` images shipped inside scikit-image (no download needed).
@@ -98,14 +99,6 @@ def _dtype(dtype) -> torch.dtype:
     if dtype not in _FLOAT_DTYPES:
         raise TypeError(f"`dtype` must be torch.float32 or torch.float64, got {dtype}")
     return dtype
-
-
-def _positive(x, name: str) -> float:
-    if isinstance(x, bool) or not isinstance(x, (int, float)):
-        raise TypeError(f"`{name}` must be a positive number, got {x!r}")
-    if not math.isfinite(x) or x <= 0:
-        raise ValueError(f"`{name}` must be a positive finite number, got {x}")
-    return float(x)
 
 
 def _pixel_grid(h: int, w: int, dtype, device):
@@ -494,114 +487,6 @@ def light_intensities(
 # --------------------------------------------------------------------------- #
 # cast shadows
 # --------------------------------------------------------------------------- #
-def cast_shadow_mask(
-    height: torch.Tensor,
-    lights: torch.Tensor,
-    pixel_size: float = 1.0,
-    n_steps: Optional[int] = None,
-    bias: float = 0.0,
-) -> torch.Tensor:
-    r"""Light visibility of every pixel of a height field (cast shadows), by ray marching.
-
-    For light ``l`` (DiLiGenT frame, pointing toward the light) the ray from
-    the surface point of pixel ``p`` is marched in one-pixel steps along the
-    light's projection onto the image plane (``d col = l_x / |l_xy|``,
-    ``d row = -l_y / |l_xy|``, row 0 at the top); at step ``k`` the ray is
-    ``k * pixel_size * l_z / |l_xy|`` above its start. The pixel is in shadow
-    if the bilinearly interpolated height at some step exceeds the ray (by
-    more than a relative tolerance of ``1e-6``, plus ``bias``). Samples whose bilinear
-    footprint leaves the image never occlude. The march stops after
-    ``ceil((max h - min h) / rise_per_step)`` steps (no occluder can be
-    higher), at most the image diagonal, or ``n_steps`` if given.
-
-    Lights at ``+z`` see everything; lights at or below the horizon
-    (``l_z <= 0``) see nothing. Attached shadows (``n . l <= 0``) are not
-    the purpose of this mask, though faces turned away from the light are
-    usually found occluded by their own neighbourhood.
-
-    Implementation: for one light and one step the sub-pixel offset is the
-    same for every pixel, so the bilinear sample is a weighted sum of four
-    shifted slices of the (padded) height field: memory ``O(H W)`` beyond the
-    output, work ``O(L H W steps)``, vectorised over pixels, device agnostic.
-
-    Args:
-        height: ``(H, W)`` heights (same length unit as ``pixel_size``).
-        lights: ``(L, 3)`` light directions (normalised here).
-        pixel_size: distance between pixel centres.
-        n_steps: optional cap on the number of march steps per light.
-        bias: an occluder must rise this much (same unit as ``height``, >= 0)
-            above the ray to count; absorbs noise of a reconstructed height
-            field (default 0: exact).
-
-    Returns:
-        ``(L, H, W)`` bool, ``True`` where the light is **visible** (lit).
-
-    Example:
-        >>> hgt = torch.zeros(32, 32); hgt[12:20, 12:20] = 10.0
-        >>> vis = cast_shadow_mask(hgt, torch.tensor([[0.6, 0.0, 0.8], [0.0, 0.0, 1.0]]))
-        >>> bool(vis[0, 16, 8]), bool(vis[0, 16, 24]), bool(vis[1].all())
-        (False, True, True)
-    """
-    check_tensor(height, "height")
-    check_shape(height, "height", ("H", "W"))
-    check_dirs(lights, "lights")
-    check_shape(lights, "lights", ("L", 3))
-    ps = _positive(pixel_size, "pixel_size")
-    if n_steps is not None:
-        n_steps = check_count(n_steps, "n_steps", minimum=0)
-    if isinstance(bias, bool) or not isinstance(bias, (int, float)) or not math.isfinite(bias) or bias < 0:
-        raise ValueError(f"`bias` must be a finite number >= 0, got {bias!r}")
-    H, W = height.shape
-    L = lights.shape[0]
-    dev = height.device
-    hgt = height.detach()
-    lts = lights.detach().to(device="cpu", dtype=torch.float64)
-    norm = torch.linalg.vector_norm(lts, dim=-1)
-    if bool((norm == 0).any()):
-        raise ValueError(f"`lights` row {int(torch.nonzero(norm == 0)[0])} is a zero vector")
-    lts = (lts / norm[:, None]).tolist()
-    vis = torch.ones(L, H, W, dtype=torch.bool, device=dev)
-    if L == 0 or H * W == 0:
-        return vis
-    h_min, h_max = float(hgt.min()), float(hgt.max())
-    h_range = h_max - h_min
-    tol = 1e-6 * max(1.0, abs(h_min), abs(h_max)) + float(bias)
-    cap = math.ceil(math.hypot(H, W))
-    if n_steps is not None:
-        cap = min(cap, n_steps)
-    low = h_min - 1e3 * (h_range + 1.0)  # padding: far below every ray, never occludes
-    for i, (lx, ly, lz) in enumerate(lts):
-        if lz <= 0:
-            vis[i] = False
-            continue
-        lxy = math.hypot(lx, ly)
-        if lxy <= 1e-9 * lz or h_range <= 0:
-            continue
-        dr, dc = -ly / lxy, lx / lxy
-        rise = ps * lz / lxy
-        steps = min(cap, math.ceil(max(h_range - bias, 0.0) / rise))
-        if steps <= 0:
-            continue
-        pad = math.ceil(steps * max(abs(dr), abs(dc))) + 2
-        big = F.pad(hgt[None, None], (pad, pad, pad, pad), value=low)[0, 0]
-        occ = torch.zeros(H, W, dtype=torch.bool, device=dev)
-        for k in range(1, steps + 1):
-            yr, yc = k * dr, k * dc
-            r0, c0 = math.floor(yr), math.floor(yc)
-            fr, fc = yr - r0, yc - c0
-            r0 += pad
-            c0 += pad
-            top = big[r0 : r0 + H, c0 : c0 + W] * (1 - fc) + big[r0 : r0 + H, c0 + 1 : c0 + 1 + W] * fc
-            bot = big[r0 + 1 : r0 + 1 + H, c0 : c0 + W] * (1 - fc) + big[r0 + 1 : r0 + 1 + H, c0 + 1 : c0 + 1 + W] * fc
-            sample = top * (1 - fr) + bot * fr
-            occ |= sample > hgt + (k * rise + tol)
-        vis[i] = ~occ
-    return vis
-
-
-# --------------------------------------------------------------------------- #
-# the demo scene
-# --------------------------------------------------------------------------- #
 def _bumpy_sphere(h: int, w: int, radius: float, n_bumps: int, g: torch.Generator):
     r"""Height (pixel units), analytic normals and the disc mask of a bumpy hemisphere (float64, CPU).
 
@@ -706,8 +591,8 @@ def demo_scene(
         >>> bool((~s["visibility"][:, s["mask"]]).any())  # some observations are cast-shadowed
         True
     """
-    from .brdf import BlinnPhong, CookTorranceGGX
-    from .render import add_sensor_noise, quantize, render_model
+    from ..brdf import BlinnPhong, CookTorranceGGX
+    from .images import add_sensor_noise, quantize, render_model
 
     h, w = _size(size)
     if min(h, w) < 8:
@@ -758,3 +643,42 @@ def demo_scene(
     out["full_scale"] = full
     out["name"] = f"demo: bumpy sphere {h}x{w}, GGX / Blinn-Phong, {n_lights} lights, cast shadows, noise, {bits} bit"
     return out
+
+
+def synthetic_scene(size: int = 48, n_lights: int = 40, seed: int = 0, dtype=torch.float64) -> dict:
+    """The small scene of ``torch-hsh demo --scene small``: a sphere with three analytic-BRDF regions
+    (GGX, Blinn-Phong, Torrance-Sparrow), a textured albedo, DiLiGenT-like lights, sensor noise.
+
+    Returns a dict with ``images (L, H, W, 3)``, ``lights (L, 3)``,
+    ``intensities (L, 3)``, ``mask (H, W)``, ``normals_gt (H, W, 3)``,
+    ``labels`` and ``name``.
+
+    Example:
+        >>> d = synthetic_scene(16, 8)
+        >>> tuple(d["images"].shape), tuple(d["lights"].shape)
+        ((8, 16, 16, 3), (8, 3))
+    """
+    from ..brdf import BlinnPhong, CookTorranceGGX, TorranceSparrow
+    from .images import add_sensor_noise, quantize, render
+
+    normals, mask = sphere_normals(size, radius=0.95, dtype=dtype)
+    mask = mask & (normals[..., 2] > 0.3)  # leave out grazing rim pixels (mostly attached shadow)
+    labels = material_regions(size, n_regions=3, seed=seed)
+    albedo = 0.15 + 0.7 * albedo_texture(size, seed=seed, dtype=dtype)  # (H, W, 3)
+    lights = diligent_like_lights(n_lights, seed=seed, dtype=dtype)
+    inten = light_intensities(n_lights, seed=seed, dtype=dtype)
+    ones = torch.ones(size, size, 1, dtype=dtype)
+    models = [
+        CookTorranceGGX(albedo=albedo, specular=0.3 * ones, roughness=0.5 * ones, f0=0.3),
+        BlinnPhong(kd=albedo, ks=0.3 * ones, shininess=20.0 * ones),
+        TorranceSparrow(albedo, 0.15 * ones, 0.35 * ones, 1.5 * ones),
+    ]
+    img = torch.zeros(n_lights, size, size, 3, dtype=dtype)
+    for k, m in enumerate(models):
+        sel = (labels % len(models)) == k
+        img = torch.where(sel[None, ..., None], render(normals, lights, m, intensities=inten), img)
+    full = float(img[:, mask].max()) * 1.05
+    img = quantize(add_sensor_noise(img, read_std=2e-3 * full, shot_gain=1e-4 * full, seed=seed), 16, full)
+    img = img * mask[None, ..., None].to(dtype)
+    return dict(images=img, lights=lights, intensities=inten, mask=mask, normals_gt=normals,
+                labels=labels, name="synthetic sphere (GGX / Blinn-Phong / Torrance-Sparrow)")

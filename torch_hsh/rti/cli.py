@@ -1,15 +1,15 @@
 r"""The RTI subcommands of ``torch-hsh`` (registered by :func:`torch_hsh.cli.build_parser`).
 
-* ``torch-hsh lights FOLDER (--sphere-mask MASK.png | --sphere-circle CX CY R) --out LIGHTS.lp`` --
+* ``torch-hsh lights CAPTURE (--sphere-mask MASK.png | --sphere-circle CX CY R) --out LIGHTS.lp`` --
   light directions from the highlight on a glossy sphere
-  (:func:`torch_hsh.rti.sphere_light_directions`). ``FOLDER`` is an RTI capture
+  (:func:`torch_hsh.rti.sphere_light_directions`). ``CAPTURE`` is an RTI capture
   (photographs plus an ``.lp`` file, whose directions are ignored) or a
   DiLiGenT folder (``filenames.txt`` or its ``*.png`` images).
 * ``torch-hsh view RESULT --out RESULT.html`` -- a self-contained WebGL2 relighting viewer of
-  the full model (:func:`torch_hsh.viewer.write_viewer`).
+  the full model (:func:`torch_hsh.rti.viewer.write_viewer`).
 * ``torch-hsh rti RESULT --terms 9 [--rti OUT.rti] [--relight OUT_DIR]`` -- the
   HSH RTI export of a ``torch-hsh ps`` result (:func:`torch_hsh.rti.project_to_rti`,
-  :func:`torch_hsh.io.rti.write_rti_hsh`, :func:`torch_hsh.io.rti.save_relight`).
+  :func:`torch_hsh.rti.io.write_rti_hsh`, :func:`torch_hsh.rti.io.save_relight`).
 
 Exit status as for the other subcommands: 2 for a bad argument value (e.g. a
 circle outside the image), 1 for a bad input file (named), 0 on success.
@@ -29,7 +29,7 @@ from typing import Any, Callable, Dict, List, Tuple
 
 import numpy as np
 
-from ._cli_common import InputError, _add_common, _int_in
+from ..cli.common import InputError, _add_common, _int_in
 
 __all__ = ["add_rti_commands"]  # lights, rti, view
 
@@ -81,7 +81,7 @@ def _float(text: str) -> float:
 
 
 def _add_result(p) -> None:
-    p.add_argument("result", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
+    p.add_argument("result", metavar="RESULT", help="result folder of torch-hsh ps (with result.npz), or a result .npz file")
     p.add_argument("--threads", type=_int_in(1, 1024), default=2, help="CPU threads for torch (default 2)")
 
 
@@ -113,7 +113,7 @@ def _out_file(ap: argparse.ArgumentParser, path: str, suffixes: Tuple[str, ...],
 def _not_into_a_result(ap: argparse.ArgumentParser, option: str, path: Path) -> None:
     """Exit 2 if ``path`` would be written inside a ``torch-hsh ps`` result folder: a foreign file there makes the
     next ``ps --out`` run refuse the folder (it only replaces folders that hold nothing but its own files)."""
-    from ._result_folder import is_result_folder
+    from ..cli.result_folder import is_result_folder
 
     path = Path(os.path.abspath(path))
     for folder in (path, path.parent):  # the path itself (a folder output, replaced with --overwrite) or its parent
@@ -125,7 +125,7 @@ def _not_into_a_result(ap: argparse.ArgumentParser, option: str, path: Path) -> 
 def _load_result(args, ap: argparse.ArgumentParser):
     """The :class:`~torch_hsh.ps.HSHResult` of ``args.result`` (a result folder or its ``.npz``), after the
     check of ``--exposure``."""
-    from .ps import HSHResult
+    from ..ps import HSHResult
 
     if args.exposure is not None and not args.exposure > 0:
         ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
@@ -143,7 +143,7 @@ def _load_result(args, ap: argparse.ArgumentParser):
 # lights
 # --------------------------------------------------------------------------- #
 def _lights_arguments(p) -> None:
-    p.add_argument("folder", help="RTI capture folder (photographs + .lp; its directions are ignored) or DiLiGenT folder")
+    p.add_argument("folder", metavar="CAPTURE", help="RTI capture folder (photographs + .lp; its directions are ignored) or DiLiGenT folder")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--sphere-mask", metavar="MASK", help="image marking the sphere (> 0 on the sphere)")
     g.add_argument("--sphere-circle", nargs=3, type=_float, metavar=("CX", "CY", "R"),
@@ -153,8 +153,8 @@ def _lights_arguments(p) -> None:
 
 def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
     """Image paths of an RTI or DiLiGenT folder and a description of where they came from."""
-    from .io.diligent import _is_aux_picture, _read_names
-    from .io.rti import find_lp, read_lp
+    from ..io.diligent import _is_aux_picture, _read_names
+    from .io import find_lp, read_lp
 
     lp = find_lp(folder)
     if lp is not None:
@@ -171,8 +171,8 @@ def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
 
 def _sphere_circle(args, ap: argparse.ArgumentParser, shape: Tuple[int, int]) -> Tuple[float, float, float]:
     """The sphere's circle ``(cx, cy, r)``: from ``--sphere-mask`` or ``--sphere-circle`` (inside the images)."""
-    from .io.rti import _read_mask
-    from .rti import sphere_circle_from_mask
+    from .io import _read_mask
+    from .fitting import sphere_circle_from_mask
 
     H, W = shape
     if args.sphere_mask is not None:
@@ -193,8 +193,8 @@ def _sphere_circle(args, ap: argparse.ArgumentParser, shape: Tuple[int, int]) ->
 def _run_lights(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
-    from .io.rti import _read_photographs, write_lp
-    from .rti import sphere_light_directions
+    from .io import _read_photographs, write_lp
+    from .fitting import sphere_light_directions
 
     say = _say(args)
     folder = Path(args.folder)
@@ -241,7 +241,8 @@ def _rti_arguments(q) -> None:
     q.add_argument("--rti", default=None, help="write this .rti file (RTIViewer HSH)")
     q.add_argument("--relight", default=None, help="write this relight/OpenLIME folder (info.json + plane_*.jpg; 9 terms)")
     _add_exposure(q)
-    q.add_argument("--linear", action="store_true", help="store linear values instead of sRGB-encoded ones")
+    q.add_argument("--linear-output", action="store_true",
+                   help="write linear values (default: sRGB-encoded, as RTI viewers expect)")
     q.add_argument("--max-angle", default="auto",
                    help="fit the lights within this many degrees of the view (default auto: the largest angle of the "
                         "result's lights; 90: the whole hemisphere, an orthonormal projection)")
@@ -250,8 +251,8 @@ def _rti_arguments(q) -> None:
 def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
-    from .io.rti import save_relight, write_rti_hsh
-    from .rti import project_to_rti
+    from .io import save_relight, write_rti_hsh
+    from .fitting import project_to_rti
 
     say = _say(args)
     if args.rti is None and args.relight is None:
@@ -288,7 +289,7 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         lz = torch.nn.functional.normalize(res.lights.double(), dim=-1)[:, 2].clamp(-1, 1)
         max_angle = min(90.0, float(torch.rad2deg(torch.arccos(lz)).max()))
     coeffs = project_to_rti(n, a, args.terms, mask=mask, exposure=exposure, max_angle_deg=max_angle,
-                            transfer="linear" if args.linear else "srgb")
+                            transfer="linear" if args.linear_output else "srgb")
     written = []
     if args.rti is not None:
         write_rti_hsh(args.rti, coeffs, overwrite=args.overwrite)
@@ -298,7 +299,7 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         written.append(args.relight)
     say(f"{args.terms}-term HSH RTI of {int(mask.sum())} pixels, lights within {max_angle:.1f} deg, "
         f"exposure {exposure:.4g}, "
-        f"{'linear' if args.linear else 'sRGB'} values; wrote {', '.join(written)}")
+        f"{'linear' if args.linear_output else 'sRGB'} values; wrote {', '.join(written)}")
     return {"exposure": exposure, "terms": args.terms, "max_angle_deg": max_angle, "written": written}
 
 

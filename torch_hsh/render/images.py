@@ -41,9 +41,9 @@ from typing import Callable, Optional, Union
 
 import torch
 
-from ._checks import check_dirs, check_order, check_same, check_shape, check_tensor
-from .kernel import helmholtz_isotropic_world, num_isotropic
-from .frames import local_frame
+from .._checks import check_dirs, check_order, check_same, check_shape, check_tensor
+from ..kernel import helmholtz_isotropic_world, num_isotropic
+from ..frames import local_frame
 
 __all__ = [
     "VIEW",
@@ -56,7 +56,6 @@ __all__ = [
     "add_sensor_noise",
     "quantize",
     "order_from_num_functions",
-    "order_from_num_coefficients",
 ]
 
 #: Direction toward the orthographic camera in the DiLiGenT frame (x right, y up, z toward the camera).
@@ -90,10 +89,6 @@ def order_from_num_functions(k: int) -> int:
         f"the last axis of the coefficient maps has {k} entries, which is not the size of an isotropic "
         "Helmholtz basis (1, 4, 10, 20, 35, 56, ... = (P+1)(P+2)(P+3)/6)"
     )
-
-
-#: Alias of :func:`order_from_num_functions` (the earlier name).
-order_from_num_coefficients = order_from_num_functions
 
 
 def _check_lights(lights: torch.Tensor, name: str = "lights") -> torch.Tensor:
@@ -214,7 +209,7 @@ def brdf_cosine(
     r"""BRDF times cosine, :math:`f(l', v') \max(0, n\cdot l)`, for every incident direction and pixel.
 
     The BRDF-evaluation piece shared by the point-light renderer and the
-    environment-map reference (:func:`torch_hsh.envmap.render_envmap_reference`).
+    environment-map reference (:func:`torch_hsh.render.envmap.render_envmap_reference`).
 
     Args:
         normals: ``(*S, 3)``.

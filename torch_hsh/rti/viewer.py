@@ -8,7 +8,7 @@ fragment shader evaluates, per pixel, ``I(l) = max(0, sum_k a_k B_k(l, v, n) max
 with this library's isotropic Helmholtz basis ``B_k`` (the GLSL is generated from the same
 recurrence constants as :func:`torch_hsh.helmholtz_isotropic_world`, see
 :func:`glsl_isotropic_basis`), ``v = (0, 0, 1)``, and shows ``sRGB(min(1, exposure * I))`` -- the
-image :func:`torch_hsh.io.rti.srgb_encode` of ``exposure * HSHResult.relight(l)``.
+image :func:`torch_hsh.rti.io.srgb_encode` of ``exposure * HSHResult.relight(l)``.
 
 The light follows the mouse (drag on the image: ``x`` right, ``y`` up, ``z`` toward the viewer);
 buttons switch to the normal map, the albedo, the confidence and the residual map. The page reads
@@ -23,7 +23,7 @@ milliseconds after the navigation start (``performance.now()``) on ``document.bo
 ``console.info`` line (``benchmarks/bench_viewer.py`` reads it to time the first frame).
 
 Example:
-    >>> from torch_hsh.viewer import write_viewer  # doctest: +SKIP
+    >>> from torch_hsh.rti.viewer import write_viewer  # doctest: +SKIP
     >>> write_viewer("result.html", HSHResult.load("results/capture/result.npz"))  # doctest: +SKIP
 """
 from __future__ import annotations
@@ -38,7 +38,7 @@ from typing import List, Optional
 import numpy as np
 import torch
 
-from ._checks import check_shape
+from .._checks import check_shape
 
 __all__ = ["glsl_isotropic_basis", "write_viewer", "default_exposure", "MODES"]
 
@@ -47,7 +47,7 @@ MODES = ("relit", "normals", "albedo", "confidence", "error")
 
 def _basis_program(order: int) -> List[str]:
     """Straight-line statements ``name = expr`` computing ``B0 .. B{K-1}`` from zi, zo, a, rho, sio."""
-    from .kernel import _iso_gather, _polar_consts
+    from ..kernel import _iso_gather, _polar_consts
 
     diag, alpha, beta, col = _polar_consts(order)
     i1, j1, i2, j2, qcol, g_scale = _iso_gather(order)
@@ -182,7 +182,7 @@ def write_viewer(path, result, exposure: Optional[float] = None, title: str = "t
     sizes = check_shape(n, "result.normals", ("H", "W", 3))
     check_shape(a, "result.coefficients", ("H", "W", 3, "K"), sizes=sizes)
     H, W, C, K = a.shape
-    from .render import order_from_num_functions
+    from ..render.images import order_from_num_functions
 
     order = order_from_num_functions(K)
     mask = result.mask.detach().cpu().bool().numpy()
