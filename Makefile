@@ -55,7 +55,7 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	OMP_NUM_THREADS=2 $(PY) -m pytest -q -m "not slow" $(ARGS)
 
-# The research scripts' tests (research/tests: their quick modes, about 30 s on 2 cores). Not part of
+# The research scripts' tests (research/tests: their quick modes, 30 s to 2 min on 2 cores). Not part of
 # `make test` or CI: research/ is not the product (research/README.md).
 research-test: $(STAMP)
 	OMP_NUM_THREADS=2 $(PY) -m pytest -q research/tests $(ARGS)
