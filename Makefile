@@ -1,30 +1,52 @@
 # Two commands do all the set-up on a fresh machine:
 #   make demo   -- photometric stereo on built-in synthetic data
 #   make test   -- the test suite
-# Both create (or reuse) the virtual environment in $(VENV). torch comes from
-# the local CPU wheel (torch==2.13.0), never the CUDA build.
+# Both create (or reuse) the virtual environment in $(VENV), each installing only what it needs:
+#   demo: torch, then the package with the `examples` extra (matplotlib: the demo's error and
+#         relighting pictures);
+#   test: the same plus the `test`, `fast` and `bench` extras (pytest, hypothesis, trimesh,
+#         sphericart-torch, e3nn, mitsuba: tests of those paths skip without them);
+#   bench: the same as demo plus the `bench` extra.
+# torch is installed first, as $(TORCH_SPEC) (default torch==2.13.0), so that no extra pulls
+# another build. TORCH_INDEX_URL picks the index it comes from: empty (the default) is pip's own
+# configuration, which on the development machine and in CI resolves torch==2.13.0 to the local
+# CPU wheel (never the CUDA build). On a stock Linux machine, take the CPU wheel with
+#   make test TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
 VENV ?= .venv
 PYTHON ?= python3
 PY := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
-STAMP := $(VENV)/.torch_hsh_installed
+TORCH_INDEX_URL ?=
+BASE_STAMP := $(VENV)/.torch_hsh_base_installed
+STAMP := $(VENV)/.torch_hsh_test_installed
+BENCH_STAMP := $(VENV)/.torch_hsh_bench_installed
 DOCS_STAMP := $(VENV)/.torch_hsh_docs_installed
 DEV_STAMP := $(VENV)/.torch_hsh_dev_installed
 MUTATION_STAMP := $(VENV)/.torch_hsh_mutation_installed
 # Docstring examples to skip (none at present).
 DOCTEST_DESELECT ?=
 
-.PHONY: demo test test-fast test-lowest doctest docs lint bench mutate env clean
+.PHONY: demo test test-fast test-lowest research-test doctest docs lint bench mutate env clean
 
-$(STAMP): pyproject.toml setup.py
+# torch first, then the package and the demo's one extra.
+$(BASE_STAMP): pyproject.toml setup.py
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q $(if $(TORCH_INDEX_URL),--index-url $(TORCH_INDEX_URL) )"$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e ".[examples]"
+	touch $(BASE_STAMP)
+
+# Everything the test suite uses (the other targets below build on it too).
+$(STAMP): $(BASE_STAMP) pyproject.toml setup.py
 	$(PY) -m pip install -q -e ".[test,examples,fast,bench]"
 	touch $(STAMP)
 
+$(BENCH_STAMP): $(BASE_STAMP) pyproject.toml setup.py
+	$(PY) -m pip install -q -e ".[examples,bench]"
+	touch $(BENCH_STAMP)
+
 env: $(STAMP)
 
-demo: $(STAMP)
+demo: $(BASE_STAMP)
 	$(PY) examples/photometric_stereo.py $(ARGS)
 
 test: $(STAMP)
@@ -32,6 +54,11 @@ test: $(STAMP)
 
 test-fast: $(STAMP)
 	OMP_NUM_THREADS=2 $(PY) -m pytest -q -m "not slow" $(ARGS)
+
+# The research scripts' tests (research/tests: their quick modes, 30 s to 2 min on 2 cores). Not part of
+# `make test` or CI: research/ is not the product (research/README.md).
+research-test: $(STAMP)
+	OMP_NUM_THREADS=2 $(PY) -m pytest -q research/tests $(ARGS)
 
 # The docstring examples as doctests.
 doctest: $(STAMP)
@@ -51,12 +78,12 @@ $(DEV_STAMP): $(STAMP) pyproject.toml
 
 # Static checks: ruff (config in pyproject.toml) and mypy.
 lint: $(DEV_STAMP)
-	$(PY) -m ruff check torch_hsh tests examples benchmarks
+	$(PY) -m ruff check torch_hsh tests examples benchmarks research
 	$(PY) -m mypy torch_hsh
 
 # Lowest allowed dependency versions (own venv, torch kept at the CPU wheel), fast tests.
 test-lowest:
-	TORCH_SPEC="$(TORCH_SPEC)" $(PYTHON) .ci/check_lowest_versions.py --venv .venv-lowest $(ARGS)
+	TORCH_SPEC="$(TORCH_SPEC)" TORCH_INDEX_URL="$(TORCH_INDEX_URL)" $(PYTHON) .ci/check_lowest_versions.py --venv .venv-lowest $(ARGS)
 
 $(MUTATION_STAMP): $(STAMP) pyproject.toml
 	$(PY) -m pip install -q -e ".[mutation]"
@@ -69,9 +96,9 @@ $(MUTATION_STAMP): $(STAMP) pyproject.toml
 mutate: $(MUTATION_STAMP)
 	$(PY) tools/mutate.py $(ARGS)
 
-bench: $(STAMP)
-	$(PY) -m pip install -q -e ".[bench]"
-	$(PY) benchmarks/bench_basis.py
+# The basis benchmark (benchmarks/README.md lists the others, run the same way).
+bench: $(BENCH_STAMP)
+	$(PY) benchmarks/bench_basis.py $(ARGS)
 
 clean:
 	rm -rf $(VENV) .venv-lowest build dist *.egg-info .pytest_cache docs/_build

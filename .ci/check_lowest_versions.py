@@ -8,7 +8,8 @@ normally; the test tools pytest and hypothesis are not our floors and resolve
 normally too);
 torch is pinned to the local CPU wheel (``$TORCH_SPEC``, default
 ``torch==2.13.0``) because a floor resolved from the index would pull the CUDA
-build. Only wheels are accepted (``--only-binary=:all:``): a floor that has no
+build (``$TORCH_INDEX_URL``, when set, is the index it comes from, as in the
+Makefile). Only wheels are accepted (``--only-binary=:all:``): a floor that has no
 wheel for this Python fails the check instead of compiling from source.
 
 Usage (from the repository root; ``make test-lowest`` does this)::
@@ -77,7 +78,8 @@ def main(argv=None) -> int:
     constraints.write_text("".join(p + "\n" for p in pins))
     print("lowest pins:\n  " + "\n  ".join(pins), flush=True)
     pip = [str(py), "-m", "pip", "install", "-q"]
-    if run(pip + [torch_spec]):
+    index = os.environ.get("TORCH_INDEX_URL", "")
+    if run(pip + (["--index-url", index] if index else []) + [torch_spec]):
         return 1
     # runtime floors exactly; the test tools resolve normally (they are not our floors)
     rc = run(pip + ["--only-binary=:all:", "-c", str(constraints), f"{ROOT}[examples]", "pytest", "hypothesis"])

@@ -1,7 +1,7 @@
 """One photometric-stereo measurement in its own process (used by bench_ps.py and bench_diligent.py).
 
 Runs with whatever ``torch_hsh`` is first on ``PYTHONPATH``: the working tree,
-or a baseline tree extracted by ``_baseline.py``, so both are timed the same
+or an older tree given to ``--baseline-tree`` (``_runner.py``), so both are timed the same
 way. Prints one JSON line: per method the mean / median angular error, the
 wall time, selected ``info`` entries, and the process's peak RSS.
 

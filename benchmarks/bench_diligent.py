@@ -3,7 +3,7 @@
 Usage:
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat ../shared/data/diligent_harvest
     python benchmarks/bench_diligent.py /path/to/DiLiGenT/pmsData --drop-first 20 --seeds 0 1 2 3 4
-    python benchmarks/bench_diligent.py ../shared/data/diligent_cat --baseline   # + the 6d85856 solver
+    python benchmarks/bench_diligent.py ../shared/data/diligent_cat --baseline-tree DIR   # + an older solver
     python benchmarks/bench_diligent.py ../shared/data/diligent_harvest --cast-shadows 1  # + the shadow loop
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat --flattened-starts     # + the opt-in starts
     python benchmarks/bench_diligent.py ../shared/data/diligent_cat --seeds 0 1 2 3 4 --basis-ridge 1e-3 1e-2
@@ -36,7 +36,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _baseline import ROOT, baseline_tree, run_worker  # noqa: E402
+from _runner import ROOT, baseline_tree_arg, run_worker  # noqa: E402
 
 #: Mean angular error (deg) published in the DiLiGenT benchmark (Shi et al., TPAMI 2019).
 PUBLISHED = {
@@ -84,7 +84,9 @@ def main(argv=None):
                     help="torch threads of every solve (default 2; 1 with --quick). More threads than free cores "
                          "make a solve many times slower, not faster")
     ap.add_argument("--max-pixels", type=int, default=None, help="random subset of the mask (quick runs)")
-    ap.add_argument("--baseline", action="store_true", help="also run the baseline solver (6d85856 + linspace fix)")
+    ap.add_argument("--baseline-tree", type=baseline_tree_arg, default=None, metavar="DIR",
+                    help="also run the solver of the torch_hsh package in DIR (an older checkout; "
+                         "research/baseline_6d85856.py prints the speed issue's baseline)")
     ap.add_argument("--baseline-seeds", type=int, nargs="+", default=None,
                     help="seeds of the baseline runs (default: the same as --seeds)")
     ap.add_argument("--flattened-starts", action="store_true",
@@ -125,8 +127,8 @@ def main(argv=None):
         if not 0 < r <= 1:
             ap.error(f"--basis-ridge values must be in (0, 1], got {r}")
         trees.append((f"HSH basis ridge {r:g}", ROOT, ["--basis-ridge", r]))
-    if args.baseline:
-        trees.append(("HSH 6d85856", baseline_tree(), []))
+    if args.baseline_tree:
+        trees.append(("HSH baseline", args.baseline_tree, []))
     records = {}
     for obj in expand(args.paths):
         name = object_name(obj)
@@ -139,6 +141,7 @@ def main(argv=None):
             runs = []
             seeds = args.seeds if tree is ROOT or args.baseline_seeds is None else args.baseline_seeds
             for s in seeds:
+                # an older tree may predate materials="auto"
                 mat = args.materials if tree is ROOT else ("default" if args.materials == "auto" else args.materials)
                 r = run_worker(["--data", obj, "--methods", "hsh", "--seed", s, "--materials", mat, *extra, *common], tree)
                 runs.append(r)

@@ -1,16 +1,17 @@
 """Speed of the HSH photometric-stereo solver, with stage shares and the ratio to a baseline measured in the same run.
 
 Usage:
-    python benchmarks/bench_ps.py --synthetic-size 16000 --lights 96 --repeat 3 --baseline
-    python benchmarks/bench_ps.py --data ../shared/data/bunny_specular --baseline
+    python benchmarks/bench_ps.py --synthetic-size 16000 --lights 96 --repeat 3
+    python benchmarks/bench_ps.py --data ../shared/data/bunny_specular --baseline-tree /path/to/old/checkout
     python benchmarks/bench_ps.py --stack 1024 --lights 96          # memory: peak RSS of a solve from a float32 stack
 
 ``--synthetic-size N``: a DiLiGenT-sized problem (N pixels, ``--lights``
 lights, RGB, Blinn–Phong with random albedo, random normals, read noise).
 ``--data DIR``: a DiLiGenT-layout folder (errors against its ground truth).
-``--baseline``: also run the solver of commit 6d85856 with only its float32
-``linspace`` crash fixed (extracted with ``git archive``), alternating runs
-with the working tree, and print the speed-up. Every run is its own process;
+``--baseline-tree DIR``: also run the solver of the ``torch_hsh`` package in
+``DIR`` (an older checkout; ``research/baseline_6d85856.py`` prints the folder
+of the speed issue's baseline), alternating runs with the working tree, and
+print the speed-up. Every run is its own process;
 both wall and CPU time are reported (on a shared, oversubscribed machine the
 CPU time is the fairer clock). ``--stack S``: solve an S x S, ``--lights``-light
 float32 RGB stack written to and loaded from disk (a sphere rendered by the
@@ -29,7 +30,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _baseline import ROOT, baseline_tree, run_worker  # noqa: E402
+from _runner import ROOT, baseline_tree_arg, run_worker  # noqa: E402
 
 STAGES = ("observations", "initialisation", "calibration", "refinement", "coefficients", "result")
 
@@ -63,7 +64,8 @@ def main(argv=None):
                          "make a solve many times slower, not faster")
     ap.add_argument("--repeat", type=int, default=3, help="runs per solver (alternating with the baseline)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
-    ap.add_argument("--baseline", action="store_true", help="also time commit 6d85856 (+ linspace fix)")
+    ap.add_argument("--baseline-tree", type=baseline_tree_arg, default=None, metavar="DIR",
+                    help="also time the torch_hsh package in DIR (an older checkout), alternating with the working tree")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--basis-ridge", type=float, default=None,
                     help="relative ridge on the basis BRDFs of the working tree's solver (default: the solver's)")
@@ -92,13 +94,14 @@ def main(argv=None):
     if args.stack:
         problems.append((f"{args.stack}x{args.stack} x {args.lights} stack",
                          _stack_args(args.stack, args.lights, args.stack_dir), True))
-    trees = [("working tree", ROOT)] + ([("baseline 6d85856", baseline_tree())] if args.baseline else [])
+    trees = [("working tree", ROOT)] + ([("baseline", args.baseline_tree)] if args.baseline_tree else [])
     for name, pargs, is_stack in problems:
         print(f"\n{name}, {args.threads} threads, device {args.device}", flush=True)
         runs = {label: [] for label, _ in trees}
         for i in range(max(1, args.repeat)):
             for s in args.seeds:
                 for label, tree in trees:
+                    # an older tree may predate materials="auto"
                     mat = common if tree is ROOT else [a if a != "auto" else "default" for a in common]
                     if tree is ROOT and args.basis_ridge is not None:
                         mat = [*mat, "--basis-ridge", args.basis_ridge]
@@ -109,8 +112,8 @@ def main(argv=None):
                           f"cpu {h['cpu_s']:.2f} s, mean error {h.get('mean', float('nan')):.2f} deg, "
                           f"peak RSS {r['peak_rss_mb']:.0f} MB", flush=True)
         res = {label: _summary(label, r) for label, r in runs.items()}
-        if args.baseline:
-            (w1, c1, e1), (w0, c0, e0) = res["working tree"], res["baseline 6d85856"]
+        if args.baseline_tree:
+            (w1, c1, e1), (w0, c0, e0) = res["working tree"], res["baseline"]
             print(f"    speed-up over the baseline: wall {w0 / w1:.2f}x, cpu {c0 / c1:.2f}x; "
                   f"error {e1:.2f} vs {e0:.2f} deg", flush=True)
         if is_stack:  # the memory run

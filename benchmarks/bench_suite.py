@@ -50,7 +50,7 @@ from typing import List, Optional
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import suite as suite_mod  # noqa: E402
-from _baseline import run_worker  # noqa: E402
+from _runner import run_worker  # noqa: E402
 
 #: (column, worker arguments or None when the stage does not exist yet, what it is)
 STAGES = [

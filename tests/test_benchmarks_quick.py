@@ -35,23 +35,6 @@ def _floats(pattern: str, text: str):
     return out
 
 
-def test_bench_demo_quick():
-    """Three rows (Lambertian LS, robust Lambertian, HSH), each printed as it is measured; the HSH solver
-    meets the two error targets on the quick scene."""
-    r = run_script("benchmarks/bench_demo.py", "--quick")
-    assert "32x32" in r.stdout and "24 lights" in r.stdout and "1 threads" in r.stdout
-    rows = {}
-    for name in ("Lambertian LS", "robust Lambertian (25%/10%)", "HSH (default)"):
-        (row,) = _floats(re.escape(name) + rf"\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s*$", r.stdout)
-        mean, median, wall, cpu = row
-        assert 0 < median <= 90 and 0 < mean <= 90 and wall >= 0 and cpu >= 0, (name, row)
-        rows[name] = row
-    assert rows["HSH (default)"][0] < rows["robust Lambertian (25%/10%)"][0] < rows["Lambertian LS"][0]
-    m = re.search(r"HSH mean (\S+) < 2.5 deg: (\w+); HSH / LS = (\S+) < 0.25: (\w+)", r.stdout)
-    assert m and m.group(2) == "True" and m.group(4) == "True", r.stdout
-    assert abs(float(m.group(3)) - rows["HSH (default)"][0] / rows["Lambertian LS"][0]) < 0.01
-
-
 @pytest.mark.slow
 def test_bench_ps_quick(sphere_folder, tmp_path):
     """A line per solve as it ends (the first one well before the script ends), then a summary per problem;
@@ -77,6 +60,31 @@ def test_bench_ps_quick(sphere_folder, tmp_path):
     assert r.last - r.first(r"run 1/1 working tree") > 1.0, r.lines
 
 
+def test_bench_ps_baseline_tree_is_checked():
+    """``--baseline-tree DIR`` names a folder holding a ``torch_hsh`` package: any other folder is refused at once."""
+    import subprocess
+    import sys
+
+    from _scripts import ROOT
+
+    p = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_ps.py"), "--quick", "--baseline-tree",
+                        str(ROOT / "docs")], capture_output=True, text=True, timeout=120, cwd=str(ROOT))
+    assert p.returncode == 2 and "--baseline-tree" in p.stderr and "no torch_hsh/__init__.py" in p.stderr, p.stderr
+
+
+@pytest.mark.slow
+def test_bench_ps_baseline_tree_quick():
+    """``--baseline-tree`` with the working tree itself as the other tree: both are timed, alternating, and the
+    speed-up line compares the two (the same solver: the same error)."""
+    from _scripts import ROOT
+
+    r = run_script("benchmarks/bench_ps.py", "--quick", "--synthetic-size", 100, "--lights", 12,
+                   "--baseline-tree", ROOT)
+    assert r.first(r"run 1/1 working tree, seed 0") < r.first(r"run 1/1 baseline, seed 0")
+    (line,) = _floats(rf"speed-up over the baseline: wall {NUM}x, cpu {NUM}x; error {NUM} vs {NUM} deg", r.stdout)
+    assert line[0] > 0 and line[1] > 0 and line[2] == pytest.approx(line[3], abs=1e-9)
+
+
 @pytest.mark.slow
 def test_bench_diligent_quick(sphere_folder, tmp_path):
     """Per-solve lines as they end, the object table, and a JSON record whose errors match the printed ones;
@@ -94,23 +102,6 @@ def test_bench_diligent_quick(sphere_folder, tmp_path):
     (row,) = _floats(rf"^\s+Lambertian LS\s+{NUM}\s+{NUM}", r.stdout)
     assert row[0] == pytest.approx(ls, abs=0.006)
     assert r.first(r"demo_sphere Lambertian LS: mean") < r.first(r"demo_sphere HSH seed 0") < r.first(r"^demo_sphere: ")
-
-
-@pytest.mark.slow
-def test_bench_materials_auto_quick():
-    """``materials="auto"`` picks one material on the one-material scene, and on both scenes ends within
-    0.3 deg of the best fixed number (the rule of issue 8)."""
-    r = run_script("benchmarks/bench_materials_auto.py", "--quick")
-    rows = {}
-    for m in re.finditer(rf"^(lambert|2mat)\s+0\s+(\d)\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}",
-                         r.stdout, re.M):
-        rows[m.group(1)] = (int(m.group(2)), [float(x) for x in m.groups()[2:6]], float(m.group(9)))
-    assert set(rows) == {"lambert", "2mat"}, r.stdout
-    assert rows["lambert"][0] == 1
-    for name, (chosen, crit, ratio) in rows.items():
-        assert 1 <= chosen <= 4 and all(c > 0 for c in crit) and 0.3 < ratio < 10, (name, rows[name])
-    assert len(re.findall(r"within 0.3 deg of the best fixed M: True", r.stdout)) == 2, r.stdout
-    assert r.last - r.first(r"^lambert\s+0") > 0.5  # printed before the second scene was solved
 
 
 def test_bench_surface_quick(sphere_folder):

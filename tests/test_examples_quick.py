@@ -212,3 +212,19 @@ def test_inverse_envmap_quick(tmp_path):
         assert 0 < r[key]["fit"] < 0.03 and 0 < r[key]["relit"] < 0.05, (key, r[key])
     assert r["shared_lstsq"]["fit"] <= r["shared_adam"]["fit"] * (1 + 1e-9)
     assert r["textured_als"]["fit"] <= r["textured_adam"]["fit"]
+
+
+def test_paper_scripts_do_not_write_into_docs_by_default():
+    """The paper scripts' default output folders are results/paper/{images,tables} (ignored by git), never docs/:
+    the committed figures and tables change only when asked (``--images docs/images --tables docs/tables``)."""
+    from _scripts import ROOT
+
+    common = load_example("examples/paper/_common.py")
+    args = common.base_parser("x").parse_args([])
+    assert args.images == ROOT / "results" / "paper" / "images"
+    assert args.tables == ROOT / "results" / "paper" / "tables"
+    docs = (ROOT / "docs").resolve()
+    for folder in (args.images, args.tables):
+        assert docs != folder.resolve() and docs not in folder.resolve().parents, folder
+    given = common.base_parser("x").parse_args(["--images", "docs/images", "--tables", "docs/tables"])
+    assert (str(given.images), str(given.tables)) == ("docs/images", "docs/tables")

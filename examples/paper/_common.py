@@ -1,9 +1,12 @@
 """Shared helpers of the paper-reproduction scripts (output handling, material library, projections).
 
 Not part of the library API. Every script writes a fixed list of files into
-``--out`` (default ``docs/images`` for figures and ``docs/tables`` for tables) and
-refuses to overwrite any of *its own* files unless ``--overwrite`` is given; it
-never touches other files.
+``--images`` (figures, default ``results/paper/images``) and ``--tables`` (tables,
+default ``results/paper/tables``), both under the repository root, and refuses to
+overwrite any of *its own* files unless ``--overwrite`` is given; it never touches
+other files. No script writes into ``docs/`` unless asked: the committed figures and
+tables are regenerated on purpose with ``--images docs/images --tables docs/tables
+--overwrite``.
 """
 from __future__ import annotations
 
@@ -17,6 +20,8 @@ from typing import List, Sequence, Tuple
 import torch
 
 ROOT = Path(__file__).resolve().parents[2]
+#: Default output folder of the paper scripts (ignored by git); never ``docs/`` unless asked.
+OUT = ROOT / "results" / "paper"
 if str(ROOT) not in sys.path:  # run from a checkout without installing
     sys.path.insert(0, str(ROOT))
 
@@ -48,8 +53,12 @@ LABEL = {
 
 def base_parser(description: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=description)
-    p.add_argument("--images", type=Path, default=ROOT / "docs" / "images", help="output folder for figures")
-    p.add_argument("--tables", type=Path, default=ROOT / "docs" / "tables", help="output folder for tables")
+    p.add_argument("--images", type=Path, default=OUT / "images",
+                   help="output folder for figures (default: results/paper/images; docs/images to regenerate "
+                        "the committed figures)")
+    p.add_argument("--tables", type=Path, default=OUT / "tables",
+                   help="output folder for tables (default: results/paper/tables; docs/tables to regenerate "
+                        "the committed tables)")
     p.add_argument("--overwrite", action="store_true", help="replace this script's existing output files")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     return p

@@ -27,8 +27,8 @@ Blinn-Phong materials only; see ``docs/conventions_and_errata.md``).
   orders for 95 % and 99 %.
 
 Outputs (refuses to overwrite them without ``--overwrite``):
-``docs/tables/compactness_isotropic.csv``, ``compactness_anisotropic.csv``,
-``compactness_cutoff.csv``, ``compactness_summary.md``, ``docs/images/paper_compactness.png``;
+``<tables>/compactness_isotropic.csv``, ``compactness_anisotropic.csv``,
+``compactness_cutoff.csv``, ``compactness_summary.md``, ``<images>/paper_compactness.png``;
 with ``--merl`` also ``compactness_merl.csv``, ``compactness_merl.md`` and
 ``paper_compactness_merl.png`` (``--merl-only``: just those).
 

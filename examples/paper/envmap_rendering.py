@@ -33,11 +33,11 @@ Metric: images are divided by the maximum of the ground truth, negative values a
 and the MAE is taken over the sphere's pixels and the RGB channels.
 
 Outputs (the script refuses to overwrite them without ``--overwrite``):
-* ``docs/images/paper_envmap_rendering.png``
-* ``docs/images/envmap_orders.png``: SH truncations of the venice map and a glossy sphere rendered
+* ``<images>/paper_envmap_rendering.png``
+* ``<images>/envmap_orders.png``: SH truncations of the venice map and a glossy sphere rendered
   at N = 2, 6, 12 against the ground truth; used in ``docs/environment_lighting.md``
-* ``docs/tables/envmap_rendering.csv``
-* ``docs/tables/envmap_rendering.md``
+* ``<tables>/envmap_rendering.csv``
+* ``<tables>/envmap_rendering.md``
 
 Run: ``python examples/paper/envmap_rendering.py [--envmaps ../shared/data/envmaps]``
 (the converged P = 8 projections are slow: the raw GGX needs up to 2e8 BRDF evaluations, the

@@ -19,8 +19,8 @@ Only materials whose ``int f^2`` is finite are used (Lambertian, Blinn-Phong): f
 microfacet and Oren-Nayar models the analytic Acc needs a grazing cutoff, while the
 tabulated version is finite only because the grazing bins are bounded.
 
-Outputs: ``docs/tables/compactness_merl.csv``, ``compactness_merl.md``,
-``docs/images/paper_compactness_merl.png`` (step 2) and ``docs/tables/merl_stand_ins.md``
+Outputs: ``<tables>/compactness_merl.csv``, ``compactness_merl.md``,
+``<images>/paper_compactness_merl.png`` (step 2) and ``<tables>/merl_stand_ins.md``
 (step 3). Run: ``python examples/paper/merl_stand_ins.py`` (a few minutes). ``--materials NAME ...`` runs a
 subset of the stand-ins (their rows are those of the full run); ``--quick`` (CI) is ``--materials
 blinn_phong_n10`` (about 10 s); give it a ``--merl-dir`` of its own (the folder's ``.binary`` files all go into step 2).

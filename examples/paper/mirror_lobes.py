@@ -17,9 +17,9 @@ plane of incidence (``wi`` at polar angle ``theta_i``, azimuth 0; ``wo`` sweeps 
 -90 to +90 degrees, positive on the mirror side), normalised by its maximum; negative
 values (ringing) are drawn dotted as ``|f_P|``.
 
-Outputs (refuses to overwrite without ``--overwrite``): ``docs/images/paper_mirror_orders.png``
-(Fig. 2: theta_i = 45 deg, P = 0, 1, 2, 4, 6, 8), ``docs/images/paper_mirror_angles.png``
-(Fig. 3: several incidence angles at P = 8), ``docs/tables/mirror_lobes.csv`` (peak
+Outputs (refuses to overwrite without ``--overwrite``): ``<images>/paper_mirror_orders.png``
+(Fig. 2: theta_i = 45 deg, P = 0, 1, 2, 4, 6, 8), ``<images>/paper_mirror_angles.png``
+(Fig. 3: several incidence angles at P = 8), ``<tables>/mirror_lobes.csv`` (peak
 direction, half-maximum width and largest negative lobe per basis/order/angle).
 
 Run: ``python examples/paper/mirror_lobes.py`` (a few seconds).

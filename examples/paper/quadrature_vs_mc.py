@@ -14,8 +14,8 @@ order ``--order`` (default 6) and three isotropic materials, this script compare
 against a reference from the reduced rule with 64 x 64 x 128 nodes. Metric: relative
 L2 error of the coefficient vector, ``|a - a_ref| / |a_ref|``.
 
-Outputs (refuses to overwrite without ``--overwrite``): ``docs/images/paper_quadrature_vs_mc.png``,
-``docs/tables/quadrature_vs_mc.csv``.
+Outputs (refuses to overwrite without ``--overwrite``): ``<images>/paper_quadrature_vs_mc.png``,
+``<tables>/quadrature_vs_mc.csv``.
 
 ``--quick`` (CI): one material (``blinn_phong_n10``) and a few sizes of each method; its rows are
 rows of the full table (same rules, same seeds), which the CI test checks against the committed CSV.

@@ -19,7 +19,7 @@
    RMS error in the plane and over all geometries (extrapolation), per order, next to a
    fit to the same number of samples spread over all geometries.
 
-Outputs: ``docs/tables/reciprocity_filtering.md``, ``docs/images/paper_reciprocity_filtering.png``.
+Outputs: ``<tables>/reciprocity_filtering.md``, ``<images>/paper_reciprocity_filtering.png``.
 Run: ``python examples/paper/reciprocity_filtering.py`` (about 10 s on a quiet core; ``--quick``, orders 2 and 4
 only, whose rows are those of the full table: a few seconds).
 """

@@ -29,9 +29,9 @@ here): six skin types with rho_d 0.60 ... 0.15 (very light ... very dark), rho_s
 type jitter rho_s and sigma by a factor U(0.8, 1.2) (seeded), standing in for facial
 regions.
 
-Outputs (refuses to overwrite without ``--overwrite``): ``docs/images/paper_ts_spectrum.png``
-(Fig. 4), ``docs/images/paper_ts_accuracy.png`` (Fig. 5), ``docs/tables/ts_spectrum.csv``,
-``docs/tables/ts_accuracy.csv``, ``docs/tables/ts_regularisation.csv``.
+Outputs (refuses to overwrite without ``--overwrite``): ``<images>/paper_ts_spectrum.png``
+(Fig. 4), ``<images>/paper_ts_accuracy.png`` (Fig. 5), ``<tables>/ts_spectrum.csv``,
+``<tables>/ts_accuracy.csv``, ``<tables>/ts_regularisation.csv``.
 
 Run: ``python examples/paper/torrance_sparrow.py`` (seconds).
 """

@@ -42,7 +42,7 @@ lights — in the units of the data, and need no parameter count.
 
 Cost: 4 shortened calibrations and 12 refits on at most 256 pixels, then the
 one full calibration of the chosen ``M`` (stage 3). Measured with
-``benchmarks/bench_materials_auto.py`` (400 pixels, 40 lights, 1 thread, 5
+``research/materials_auto.py`` (400 pixels, 40 lights, 1 thread, 5
 scenes x 3 seeds): the selection takes 0.2-0.5 of the time of a whole
 ``materials=2`` solve, and a whole ``"auto"`` solve 0.75-1.54x (median 1.40)
 the CPU time of ``materials=2`` (the upper end when it picks ``M = 4``, whose

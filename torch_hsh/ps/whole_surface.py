@@ -30,7 +30,7 @@ current depth, times Cauchy IRLS weights. The stage alternates ``rounds`` times:
 Start: ``z_0`` integrates the per-pixel normals (:func:`torch_hsh.surface.integrate_normals`,
 bilateral, at most 10 re-weighting iterations): Poisson integration smears the depth jumps of real
 objects, and the normals of a Poisson depth of the *true* normals are 4.2 deg off on the cat and 16.5
-deg on harvest, against 1.2 and 5.3 deg with the bilateral depth (``benchmarks/surface_floor.py``). Normals of the depth: per axis the forward or the backward difference, mixed with the
+deg on harvest, against 1.2 and 5.3 deg with the bilateral depth (``research/surface_floor.py``). Normals of the depth: per axis the forward or the backward difference, mixed with the
 weight ``sigmoid(k (d_-^2 - d_+^2))`` of bilateral normal integration (Cao et al. 2022) from the
 depth at the start of the round, so a jump inside the mask is seen from its smooth side; one-sided
 at the mask edge. The loss is evaluated in chunks of pixels (the normals' gradient is accumulated

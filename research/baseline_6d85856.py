@@ -1,23 +1,27 @@
-"""Extract a baseline version of ``torch_hsh`` from git and run the benchmark worker against it or the working tree.
+"""The baseline of the speed issue: ``torch_hsh`` of commit 6d85856, extracted from git, with one crash fixed.
 
-The baseline of the speed issue is commit 6d85856 with only its float32
-``linspace`` crash fixed (``robust_sigma`` indexed past the end once the
-background held more than 2**24 values): :func:`baseline_tree` applies
-exactly that one-line patch.
+Commit 6d85856 with only its float32 ``linspace`` crash fixed (``robust_sigma`` indexed past the end
+once the background held more than 2**24 values): :func:`baseline_tree` extracts the package with
+``git archive`` into the system's temporary folder and applies exactly that one-line patch. It needs a
+git checkout that holds the commit.
+
+Running the script prints the folder, for the benchmarks' ``--baseline-tree``::
+
+    python research/baseline_6d85856.py
+    python benchmarks/bench_ps.py --synthetic-size 16000 --lights 96 --repeat 3 \\
+        --baseline-tree "$(python research/baseline_6d85856.py)"
+    python benchmarks/bench_diligent.py ../shared/data/diligent_cat --seeds 0 1 2 \\
+        --baseline-tree "$(python research/baseline_6d85856.py)" --baseline-seeds 0
 """
 from __future__ import annotations
 
 import io
-import json
-import os
 import subprocess
-import sys
 import tarfile
 import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-WORKER = Path(__file__).resolve().parent / "_ps_worker.py"
 BASELINE_COMMIT = "6d85856"
 _LINSPACE = "idx = torch.linspace(0, x.numel() - 1, 2_000_000, device=x.device).long()"
 _LINSPACE_FIX = "idx = torch.arange(2_000_000, dtype=torch.int64, device=x.device) * (x.numel() - 1) // 1_999_999"
@@ -41,13 +45,5 @@ def baseline_tree(commit: str = BASELINE_COMMIT) -> Path:
     return out
 
 
-def run_worker(args, tree: Path = ROOT, timeout: float = 3600) -> dict:
-    """Run ``_ps_worker.py`` with ``torch_hsh`` imported from ``tree``; returns its JSON record."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(tree) + os.pathsep + env.get("PYTHONPATH", "")
-    env.setdefault("OMP_NUM_THREADS", "2")
-    p = subprocess.run([sys.executable, str(WORKER), *map(str, args)], env=env, capture_output=True, text=True,
-                       timeout=timeout, cwd=str(ROOT))
-    if p.returncode != 0:
-        raise RuntimeError(f"benchmark worker failed ({tree}):\n{p.stderr[-3000:]}")
-    return json.loads(p.stdout.strip().splitlines()[-1])
+if __name__ == "__main__":
+    print(baseline_tree())

@@ -9,9 +9,9 @@ the normals of the depth integrated from them. Columns: the integrator
 :func:`torch_hsh.ps.whole_surface.depth_normals`).
 
 Usage:
-    python benchmarks/surface_floor.py                          # the suite's scenes (bench_suite.py)
-    python benchmarks/surface_floor.py --only diligent_cat --shared ../shared/data
-    python benchmarks/surface_floor.py --quick                  # CI: the quick scenes, Poisson only
+    python research/surface_floor.py                          # the suite's scenes (bench_suite.py)
+    python research/surface_floor.py --only diligent_cat --shared ../shared/data
+    python research/surface_floor.py --quick                  # CI: the quick scenes, Poisson only
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the suite's scenes
 import suite as suite_mod  # noqa: E402
 
 

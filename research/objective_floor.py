@@ -30,10 +30,10 @@ does not lead to the truth's basin. Only a better model (interreflections, cast 
 can. The comparison is between two local minima, each with its own basis, at one solver seed.
 
 Usage:
-    python benchmarks/objective_floor.py --shared ../shared/data       # the suite (bench_suite.py)
-    python benchmarks/objective_floor.py --only diligent_harvest --shared ../shared/data --materials 3
-    python benchmarks/objective_floor.py --quick --only bumpy_shadows  # CI: a 32² synthetic scene
-    python benchmarks/objective_floor.py --only diligent_harvest --shared ../shared/data --surface --interreflections
+    python research/objective_floor.py --shared ../shared/data       # the suite (bench_suite.py)
+    python research/objective_floor.py --only diligent_harvest --shared ../shared/data --materials 3
+    python research/objective_floor.py --quick --only bumpy_shadows  # CI: a 32² synthetic scene
+    python research/objective_floor.py --only diligent_harvest --shared ../shared/data --surface --interreflections
 
 ``--surface`` adds the whole-surface stage's own loss (:func:`surface_loss`) at three surfaces, and
 ``--interreflections`` runs everything on the images after the solver's one-bounce round.
@@ -47,7 +47,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the suite's scenes
 import suite as suite_mod  # noqa: E402
 
 

@@ -1,9 +1,9 @@
 """Benchmark the photometric-stereo solvers on the demo scene (``torch_hsh.render.scenes.demo_scene``).
 
 Usage:
-    python benchmarks/bench_demo.py                      # 128 x 128, 96 lights, seed 0, 2 threads
-    python benchmarks/bench_demo.py --seed 1 --min-nz 0.3
-    python benchmarks/bench_demo.py --solver-seed 3 --basis-ridge 1e-3   # another calibration subset, the old ridge
+    python research/demo_targets.py                      # 128 x 128, 96 lights, seed 0, 2 threads
+    python research/demo_targets.py --seed 1 --min-nz 0.3
+    python research/demo_targets.py --solver-seed 3 --basis-ridge 1e-3   # another calibration subset, the old ridge
 
 Prints, for Lambertian LS, trimmed Lambertian (``ps.robust_lambertian``) and the
 HSH solver (``ps.solve_hsh``, default settings): the mean and median angular error

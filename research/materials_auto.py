@@ -1,9 +1,9 @@
 """Benchmark ``materials="auto"`` of the HSH solver: its choice, its criterion, its cost against ``materials=2``.
 
 Usage:
-    python benchmarks/bench_materials_auto.py                      # small synthetic scenes, 1 seed
-    python benchmarks/bench_materials_auto.py --fixed --seeds 3    # also every fixed M in 1..4 (acceptance rule)
-    python benchmarks/bench_materials_auto.py --data ../shared/data/diligent_cat --max-pixels 4000 --fixed
+    python research/materials_auto.py                      # small synthetic scenes, 1 seed
+    python research/materials_auto.py --fixed --seeds 3    # also every fixed M in 1..4 (acceptance rule)
+    python research/materials_auto.py --data ../shared/data/diligent_cat --max-pixels 4000 --fixed
 
 Scenes (random normals in a cone, DiLiGenT-like cone of lights, read noise 1e-3 of the maximum):
 
