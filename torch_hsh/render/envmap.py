@@ -86,7 +86,7 @@ import torch
 from ..._checks import broadcast_shapes, check_dirs, check_order, check_same, check_shape, check_tensor
 from ...kernel import hsh, iso_pair_gather
 from ...bases.westin import _sh_gather, _sh_polar, complex_powers, real_sh
-from ..images import brdf_cosine, order_from_num_functions
+from ...images import brdf_cosine, order_from_num_functions
 
 __all__ = [
     "EnvironmentMap",

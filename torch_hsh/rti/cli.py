@@ -154,7 +154,7 @@ def _lights_arguments(p) -> None:
 def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
     """Image paths of an RTI or DiLiGenT folder and a description of where they came from."""
     from ...io.diligent import _is_aux_picture, _read_names
-    from ..io import find_lp, read_lp
+    from ...io import find_lp, read_lp
 
     lp = find_lp(folder)
     if lp is not None:
@@ -171,8 +171,8 @@ def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
 
 def _sphere_circle(args, ap: argparse.ArgumentParser, shape: Tuple[int, int]) -> Tuple[float, float, float]:
     """The sphere's circle ``(cx, cy, r)``: from ``--sphere-mask`` or ``--sphere-circle`` (inside the images)."""
-    from ..io import _read_mask
-    from ..fitting import sphere_circle_from_mask
+    from ...io import _read_mask
+    from ...fitting import sphere_circle_from_mask
 
     H, W = shape
     if args.sphere_mask is not None:
@@ -193,8 +193,8 @@ def _sphere_circle(args, ap: argparse.ArgumentParser, shape: Tuple[int, int]) ->
 def _run_lights(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
-    from ..io import _read_photographs, write_lp
-    from ..fitting import sphere_light_directions
+    from ...io import _read_photographs, write_lp
+    from ...fitting import sphere_light_directions
 
     say = _say(args)
     folder = Path(args.folder)
@@ -251,8 +251,8 @@ def _rti_arguments(q) -> None:
 def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
-    from ..io import save_relight, write_rti_hsh
-    from ..fitting import project_to_rti
+    from ...io import save_relight, write_rti_hsh
+    from ...fitting import project_to_rti
 
     say = _say(args)
     if args.rti is None and args.relight is None:
