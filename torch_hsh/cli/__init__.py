@@ -31,7 +31,7 @@ import warnings
 from contextlib import contextmanager
 from typing import Any, List, Optional
 
-from ...common import PROG, InputError
+from .common import PROG, InputError
 
 __all__ = ["build_parser", "main", "run", "PROG", "InputError"]
 
@@ -41,10 +41,10 @@ __all__ = ["build_parser", "main", "run", "PROG", "InputError"]
 # --------------------------------------------------------------------------- #
 def build_parser() -> argparse.ArgumentParser:
     """The ``torch-hsh`` argument parser (subcommands ``ps``, ``demo``, ``lights``, ``rti``, ``view`` and ``fit``)."""
-    from ..._version import __version__
-    from ...ps.cli import add_ps_commands
-    from ...rti.cli import add_rti_commands
-    from ...fit import add_fit_command
+    from .._version import __version__
+    from ..ps.cli import add_ps_commands
+    from ..rti.cli import add_rti_commands
+    from .fit import add_fit_command
 
     ap = argparse.ArgumentParser(prog=PROG, description="Helmholtz HSH BRDF tools (torch_hsh).")
     ap.add_argument("--version", action="version", version=f"{PROG} {__version__}")

@@ -216,7 +216,7 @@ class _Staging:
 
 
 def _umask() -> int:
-    from ...io.merl import _current_umask
+    from ..io.merl import _current_umask
 
     return _current_umask()
 

@@ -281,7 +281,7 @@ def _solver_flags():
     """The fields of :class:`torch_hsh.ps.Settings` that name a ``torch-hsh ps`` flag, with that flag's spec."""
     import dataclasses
 
-    from .settings import Settings
+    from ..ps.settings import Settings
 
     return [(f, f.metadata["cli"]) for f in dataclasses.fields(Settings) if f.metadata["cli"] is not None]
 

@@ -21,7 +21,7 @@ Example:
     >>> render(normals, lights, Lambertian(albedo)).shape
     torch.Size([4, 16, 16, 3])
 """
-from .images import envmap, images, scenes, visibility
+from . import envmap, images, scenes, visibility
 from .envmap import *  # noqa: F401,F403
 from .images import *  # noqa: F401,F403
 from .visibility import cast_shadow_mask

@@ -83,10 +83,10 @@ from typing import Callable, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from ..._checks import broadcast_shapes, check_dirs, check_order, check_same, check_shape, check_tensor
-from ...kernel import hsh, iso_pair_gather
-from ...bases.westin import _sh_gather, _sh_polar, complex_powers, real_sh
-from ...images import brdf_cosine, order_from_num_functions
+from .._checks import broadcast_shapes, check_dirs, check_order, check_same, check_shape, check_tensor
+from ..kernel import hsh, iso_pair_gather
+from ..bases.westin import _sh_gather, _sh_polar, complex_powers, real_sh
+from .images import brdf_cosine, order_from_num_functions
 
 __all__ = [
     "EnvironmentMap",
@@ -433,7 +433,7 @@ class EnvironmentMap:
             >>> env.shape  # doctest: +SKIP
             (512, 1024, 3)
         """
-        from ...io.exr import read_envmap
+        from ..io.exr import read_envmap
 
         arr = np.ascontiguousarray(read_envmap(path), dtype=np.float64)
         if not np.isfinite(arr).all():

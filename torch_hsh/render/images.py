@@ -41,9 +41,9 @@ from typing import Callable, Optional, Union
 
 import torch
 
-from ..._checks import check_dirs, check_order, check_same, check_shape, check_tensor
-from ...kernel import helmholtz_isotropic_world, num_isotropic
-from ...frames import local_frame
+from .._checks import check_dirs, check_order, check_same, check_shape, check_tensor
+from ..kernel import helmholtz_isotropic_world, num_isotropic
+from ..frames import local_frame
 
 __all__ = [
     "VIEW",

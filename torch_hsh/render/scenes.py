@@ -21,8 +21,8 @@ from typing import Optional, Tuple, Union
 import torch
 import torch.nn.functional as F
 
-from ..._checks import check_count, check_dirs, check_shape, check_tensor
-from ...visibility import _positive, cast_shadow_mask
+from .._checks import check_count, check_dirs, check_shape, check_tensor
+from .visibility import _positive, cast_shadow_mask
 
 __all__ = [
     "sphere_normals",
@@ -591,8 +591,8 @@ def demo_scene(
         >>> bool((~s["visibility"][:, s["mask"]]).any())  # some observations are cast-shadowed
         True
     """
-    from ...brdf import BlinnPhong, CookTorranceGGX
-    from ...images import add_sensor_noise, quantize, render_model
+    from ..brdf import BlinnPhong, CookTorranceGGX
+    from .images import add_sensor_noise, quantize, render_model
 
     h, w = _size(size)
     if min(h, w) < 8:
@@ -658,8 +658,8 @@ def synthetic_scene(size: int = 48, n_lights: int = 40, seed: int = 0, dtype=tor
         >>> tuple(d["images"].shape), tuple(d["lights"].shape)
         ((8, 16, 16, 3), (8, 3))
     """
-    from ...brdf import BlinnPhong, CookTorranceGGX, TorranceSparrow
-    from ...images import add_sensor_noise, quantize, render
+    from ..brdf import BlinnPhong, CookTorranceGGX, TorranceSparrow
+    from .images import add_sensor_noise, quantize, render
 
     normals, mask = sphere_normals(size, radius=0.95, dtype=dtype)
     mask = mask & (normals[..., 2] > 0.3)  # leave out grazing rim pixels (mostly attached shadow)

@@ -13,7 +13,7 @@ Modules::
 Example:
     >>> from torch_hsh.rti import read_lp, project_to_rti, write_rti_hsh  # doctest: +SKIP
 """
-from .fitting import fitting, io, viewer
+from . import fitting, io, viewer
 from .fitting import *  # noqa: F401,F403
 from .io import *  # noqa: F401,F403
 from .viewer import *  # noqa: F401,F403

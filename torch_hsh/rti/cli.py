@@ -29,7 +29,7 @@ from typing import Any, Callable, Dict, List, Tuple
 
 import numpy as np
 
-from ...cli.common import InputError, _add_common, _int_in
+from ..cli.common import InputError, _add_common, _int_in
 
 __all__ = ["add_rti_commands"]  # lights, rti, view
 
@@ -113,7 +113,7 @@ def _out_file(ap: argparse.ArgumentParser, path: str, suffixes: Tuple[str, ...],
 def _not_into_a_result(ap: argparse.ArgumentParser, option: str, path: Path) -> None:
     """Exit 2 if ``path`` would be written inside a ``torch-hsh ps`` result folder: a foreign file there makes the
     next ``ps --out`` run refuse the folder (it only replaces folders that hold nothing but its own files)."""
-    from ...cli.result_folder import is_result_folder
+    from ..cli.result_folder import is_result_folder
 
     path = Path(os.path.abspath(path))
     for folder in (path, path.parent):  # the path itself (a folder output, replaced with --overwrite) or its parent
@@ -125,7 +125,7 @@ def _not_into_a_result(ap: argparse.ArgumentParser, option: str, path: Path) -> 
 def _load_result(args, ap: argparse.ArgumentParser):
     """The :class:`~torch_hsh.ps.HSHResult` of ``args.result`` (a result folder or its ``.npz``), after the
     check of ``--exposure``."""
-    from ...ps import HSHResult
+    from ..ps import HSHResult
 
     if args.exposure is not None and not args.exposure > 0:
         ap.error(f"argument --exposure: must be > 0, got {args.exposure:g}")
@@ -153,8 +153,8 @@ def _lights_arguments(p) -> None:
 
 def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
     """Image paths of an RTI or DiLiGenT folder and a description of where they came from."""
-    from ...io.diligent import _is_aux_picture, _read_names
-    from ...io import find_lp, read_lp
+    from ..io.diligent import _is_aux_picture, _read_names
+    from .io import find_lp, read_lp
 
     lp = find_lp(folder)
     if lp is not None:
@@ -171,8 +171,8 @@ def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
 
 def _sphere_circle(args, ap: argparse.ArgumentParser, shape: Tuple[int, int]) -> Tuple[float, float, float]:
     """The sphere's circle ``(cx, cy, r)``: from ``--sphere-mask`` or ``--sphere-circle`` (inside the images)."""
-    from ...io import _read_mask
-    from ...fitting import sphere_circle_from_mask
+    from .io import _read_mask
+    from .fitting import sphere_circle_from_mask
 
     H, W = shape
     if args.sphere_mask is not None:
@@ -193,8 +193,8 @@ def _sphere_circle(args, ap: argparse.ArgumentParser, shape: Tuple[int, int]) ->
 def _run_lights(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
-    from ...io import _read_photographs, write_lp
-    from ...fitting import sphere_light_directions
+    from .io import _read_photographs, write_lp
+    from .fitting import sphere_light_directions
 
     say = _say(args)
     folder = Path(args.folder)
@@ -251,8 +251,8 @@ def _rti_arguments(q) -> None:
 def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
-    from ...io import save_relight, write_rti_hsh
-    from ...fitting import project_to_rti
+    from .io import save_relight, write_rti_hsh
+    from .fitting import project_to_rti
 
     say = _say(args)
     if args.rti is None and args.relight is None:

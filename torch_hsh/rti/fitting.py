@@ -65,7 +65,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from ..._checks import check_shape
+from .._checks import check_shape
 
 __all__ = [
     "SphereLights",
@@ -409,7 +409,7 @@ def project_to_rti(
         >>> abs(float(evaluate_rti(c, l)[0, 0, 0]) - 0.8) < 0.01
         True
     """
-    from ...render.images import render_coefficients
+    from ..render.images import render_coefficients
 
     terms = _check_terms(terms)
     if transfer not in ("srgb", "linear"):

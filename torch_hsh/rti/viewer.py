@@ -38,7 +38,7 @@ from typing import List, Optional
 import numpy as np
 import torch
 
-from ..._checks import check_shape
+from .._checks import check_shape
 
 __all__ = ["glsl_isotropic_basis", "write_viewer", "default_exposure", "MODES"]
 
@@ -47,7 +47,7 @@ MODES = ("relit", "normals", "albedo", "confidence", "error")
 
 def _basis_program(order: int) -> List[str]:
     """Straight-line statements ``name = expr`` computing ``B0 .. B{K-1}`` from zi, zo, a, rho, sio."""
-    from ...kernel import _iso_gather, _polar_consts
+    from ..kernel import _iso_gather, _polar_consts
 
     diag, alpha, beta, col = _polar_consts(order)
     i1, j1, i2, j2, qcol, g_scale = _iso_gather(order)
@@ -182,7 +182,7 @@ def write_viewer(path, result, exposure: Optional[float] = None, title: str = "t
     sizes = check_shape(n, "result.normals", ("H", "W", 3))
     check_shape(a, "result.coefficients", ("H", "W", 3, "K"), sizes=sizes)
     H, W, C, K = a.shape
-    from ...render.images import order_from_num_functions
+    from ..render.images import order_from_num_functions
 
     order = order_from_num_functions(K)
     mask = result.mask.detach().cpu().bool().numpy()
