@@ -315,7 +315,7 @@ def main(argv=None):
     est_an = max(m[0] for m in an_meta)
     with open(files[2], "w") as fh:
         fh.write("# Compactness of the BRDF bases on analytic materials\n\n")
-        fh.write(f"Produced by `python examples/paper/compactness.py` ({time.strftime('%Y-%m-%d')}). "
+        fh.write("Produced by `python examples/paper/compactness.py`. "
                  "Acc(P) = captured energy fraction (paper Eq. 17); `n/a` where the H-basis stops (order 2) "
                  "or a threshold is not reached by P = 10. Medians ignore materials that never reach the threshold.\n\n"
                  f"**Isotropic materials** use the reduced rule refined per material and quantity until Acc(P') of the "

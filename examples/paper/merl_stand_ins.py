@@ -128,7 +128,7 @@ def main(argv=None):
                      compactness.min_order(acc_conv.numpy(), 0.99), compactness.min_order(m, 0.99)])
     with open(out, "w") as fh:
         fh.write("# MERL-format stand-ins: Fig. 6 through the lookup vs the analytic projection\n\n")
-        fh.write(f"Produced by `python examples/paper/merl_stand_ins.py` ({time.strftime('%Y-%m-%d')}, "
+        fh.write(f"Produced by `python examples/paper/merl_stand_ins.py` ("
                  f"{time.time() - t0:.0f} s). Files on MERL's grid {MERL_SHAPE}, raw BRDF f, Helmholtz isotropic basis. "
                  "`analytic`: converged projection of the analytic BRDF (tol 2e-4); `MERL`: the same through "
                  "`compactness.py --merl` (nearest-bin lookup, tol 2e-3). Binning check on one fixed rule "

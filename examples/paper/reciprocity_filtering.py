@@ -131,7 +131,7 @@ def main(argv=None):
     erows = extrapolation(f, args.n_samples, args.seed, args.ridge, args.orders)
     with open(files[0], "w") as fh:
         fh.write("# Scattered data: reciprocity filtering and plane-of-incidence extrapolation\n\n")
-        fh.write(f"Produced by `python examples/paper/reciprocity_filtering.py` ({time.strftime('%Y-%m-%d')}, "
+        fh.write(f"Produced by `python examples/paper/reciprocity_filtering.py` ("
                  f"{time.time() - t0:.0f} s). True BRDF: Blinn-Phong kd = 0.5, ks = 0.3, n = 10. "
                  f"{args.n_samples} uniform random pairs, multiplicative noise {args.noise:g}, non-reciprocal "
                  f"distortion f (1 + {args.kappa:g} (cos theta_i - cos theta_o)). Errors are relative RMS on 20 000 "

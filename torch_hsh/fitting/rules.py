@@ -1,7 +1,7 @@
 r"""Product rules over :math:`\Omega_i\times\Omega_o`: the fixed node sets and the sums of one rule.
 
-Conventions
------------
+Conventions of the rules
+------------------------
 * The integrals are over the upper hemispheres, optionally cut at grazing angles:
   :math:`\cos\theta \ge c` for **both** directions (``grazing_cutoff = c``). With a
   cutoff the integrand is the BRDF times the indicator of that region, so Parseval

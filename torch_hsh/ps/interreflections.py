@@ -22,7 +22,7 @@ Model of step 3 (orthographic view along ``v = +z``, pixel units, DiLiGenT frame
 ``y`` up and ``z = depth``. Its radiance toward ``p`` is taken to be its observed value ``I_l(q)``
 (a Lambertian emitter: the value seen by the camera is the value seen by the neighbour). ``p``
 reflects with the directional albedo ``A_p`` of the solve (:attr:`HSHResult.albedo`), as a diffuse
-receiver:
+receiver::
 
     indirect_l(p) = A_p * sum_q F(p, q) I_l(q),
     F(p, q) = max(0, n_p . d) max(0, -n_q . d) dA_q / (pi r^4),    d = X_q - X_p,  r = |d|,

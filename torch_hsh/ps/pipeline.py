@@ -23,17 +23,17 @@ Two models (see ``docs/photometric_stereo.md``):
 :func:`solve_hsh` is a pipeline of six stages, each in its own module, with
 small state objects between them (data flows one way):
 
-=====  ==========================  ==================  =====================================
-stage  module                      returns             what it does
-=====  ==========================  ==================  =====================================
-1      :mod:`.observations`        ``Observations``    flatten, normalise, noise / saturation / shadow weights
-2      :mod:`.initialisation`      ``(P, 3)`` normals  robust Lambertian start
-3a     :mod:`.materials`           ``M``, criterion    ``materials="auto"``: ``M`` by held-out-light cross-validation
-3      :mod:`.calibration`         ``Calibration``     shared basis BRDFs on a pixel subset (shared model)
-4      :mod:`.refinement`          ``Refinement``      per-pixel normals (and mixing weights), in chunks
-5      :mod:`.coefficients`        ``Coefficients``    final coefficients, non-negativity safeguard
-6      :mod:`.result`              ``HSHResult``       maps, albedo, relighting, holdout evaluation
-=====  ==========================  ==================  =====================================
+=====  ====================================  ==================  =====================================
+stage  module                                returns             what it does
+=====  ====================================  ==================  =====================================
+1      :mod:`~torch_hsh.ps.observations`     ``Observations``    flatten, normalise, noise / saturation / shadow weights
+2      :mod:`~torch_hsh.ps.initialisation`   ``(P, 3)`` normals  robust Lambertian start
+3a     :mod:`~torch_hsh.ps.materials`        ``M``, criterion    ``materials="auto"``: ``M`` by held-out-light cross-validation
+3      :mod:`~torch_hsh.ps.calibration`      ``Calibration``     shared basis BRDFs on a pixel subset (shared model)
+4      :mod:`~torch_hsh.ps.refinement`       ``Refinement``      per-pixel normals (and mixing weights), in chunks
+5      :mod:`~torch_hsh.ps.coefficients`     ``Coefficients``    final coefficients, non-negativity safeguard
+6      :mod:`~torch_hsh.ps.result`           ``HSHResult``       maps, albedo, relighting, holdout evaluation
+=====  ====================================  ==================  =====================================
 
 Around the stages, all opt-in: the cast-shadow loop (:mod:`.shadows`), the removal of one
 bounce of interreflection (:mod:`.interreflections`) and the whole-surface stage
