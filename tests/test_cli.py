@@ -50,11 +50,11 @@ def fake_solver(monkeypatch):
         calls.append(dict(order=order, materials=materials, lights=int(lights.shape[0]), **kw))
         lam = ps.lambertian_ls(images, lights, intensities, mask)
         K = torch_hsh.num_isotropic(order)
-        coeffs = torch.zeros(*mask.shape, 3, K, dtype=images.dtype)
-        coeffs[..., 0] = 1.0
+        coefficients = torch.zeros(*mask.shape, 3, K, dtype=images.dtype)
+        coefficients[..., 0] = 1.0
         conf = state["confidence"]
         return SimpleNamespace(
-            normals=lam.normals, coefficients=coeffs, info={"noise_sigma": float("nan"), "iterations": 3},
+            normals=lam.normals, coefficients=coefficients, info={"noise_sigma": float("nan"), "iterations": 3},
             relight=lambda l, e=None: torch.zeros(l.shape[0], *mask.shape, 3, dtype=images.dtype),
             confidence=None if conf is None else conf(mask),
         )

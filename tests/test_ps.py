@@ -134,7 +134,7 @@ def test_directional_albedo_matches_quadrature():
 
 def test_holdout_mode_reports_relighting_error():
     n, l = _scene(30, 30, 4)
-    model = BlinnPhong(kd=torch.full((30, 3), 0.5, dtype=DT), ks=torch.full((30, 1), 0.4, dtype=DT),
+    model = BlinnPhong(albedo=torch.full((30, 3), 0.5, dtype=DT), specular=torch.full((30, 1), 0.4, dtype=DT),
                        shininess=torch.full((30, 1), 8.0, dtype=DT))
     img = render(n, l, model)
     ho = ps.holdout_evaluation(img, l, holdout=6, seed=1, max_iter=8)

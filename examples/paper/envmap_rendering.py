@@ -112,14 +112,14 @@ def sphere(size: int):
     return n[mask], mask
 
 
-def basis_callable(name: str, coeffs: torch.Tensor, order: int):
-    """``f(wi, wo) -> (..., C)`` of a fitted expansion ``coeffs (C, K)`` in basis ``name``."""
+def basis_callable(name: str, coefficients: torch.Tensor, order: int):
+    """``f(wi, wo) -> (..., C)`` of a fitted expansion ``coefficients (C, K)`` in basis ``name``."""
     b = get_basis(name)
 
     def f(wi, wo):
         lead = wi.shape[:-1]
         B = b.evaluate(wi.reshape(-1, 3), wo.reshape(-1, 3), order)
-        return (B @ coeffs.T).reshape(*lead, coeffs.shape[0])
+        return (B @ coefficients.T).reshape(*lead, coefficients.shape[0])
 
     return f
 

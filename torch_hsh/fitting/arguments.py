@@ -39,7 +39,7 @@ def infer_order(basis: BasisLike, num_functions: int) -> int:
         if c > k:
             break
     raise ValueError(
-        f"the last dimension of `coeffs` ({k}) matches no order of basis '{b.name}'; "
+        f"the last dimension of `coefficients` ({k}) matches no order of basis '{b.name}'; "
         f"valid sizes start {counts[:8]}{' ...' if len(counts) > 8 else ''}"
     )
 
@@ -50,7 +50,7 @@ def _order_of(b: Basis, K: int, order) -> int:
     P = b.check_order(order)
     if b.num_functions(P) != K:
         raise ValueError(
-            f"`coeffs` has {K} functions in its last dimension but basis '{b.name}' has "
+            f"`coefficients` has {K} functions in its last dimension but basis '{b.name}' has "
             f"{b.num_functions(P)} functions up to order {P}"
         )
     return P

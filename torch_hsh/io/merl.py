@@ -724,7 +724,7 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
         return_info: also return the diagnostics dict.
 
     Returns:
-        ``(3, K)`` float64 coefficients; with ``return_info``, ``(coeffs, info)`` where ``info``
+        ``(3, K)`` float64 coefficients; with ``return_info``, ``(coefficients, info)`` where ``info``
         holds, per channel ``(3,)`` unless noted:
 
         * ``relative_error``: :math:`\|y - Aa\|_W / \|y\|_W`, the weighted relative L2 error on
@@ -761,17 +761,17 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
     dev = sums.rhs.device
     orders = b.function_orders(P).to(dev)
     per_order = torch.zeros(3, P + 1, dtype=torch.float64, device=dev)
-    coeffs, cond = _solve_orders(sums, ridge, orders, torch.ones(K, dtype=torch.bool, device=dev))
+    coefficients, cond = _solve_orders(sums, ridge, orders, torch.ones(K, dtype=torch.bool, device=dev))
     full = torch.ones(K, dtype=torch.bool, device=dev)
     for p in range(P + 1):
         sel = orders <= p
-        a_p = coeffs if p == P else _solve_orders(sums, ridge, orders, sel)[0]
+        a_p = coefficients if p == P else _solve_orders(sums, ridge, orders, sel)[0]
         per_order[:, p] = _relative_error(a_p, sel, sums.G, sums.rhs, sums.yy)
     if not return_info:
-        return coeffs
+        return coefficients
     info = {
         "relative_error": per_order[:, P].clone(),
-        "relative_error_unweighted": _relative_error(coeffs, full, sums.Gu, sums.rhsu, sums.yyu),
+        "relative_error_unweighted": _relative_error(coefficients, full, sums.Gu, sums.rhsu, sums.yyu),
         "relative_error_per_order": per_order,
         "energy": sums.yy,
         "accuracy": 1.0 - per_order ** 2,
@@ -780,7 +780,7 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
         "condition": cond,
         "runtime_s": time.perf_counter() - t0,
     }
-    return coeffs, info
+    return coefficients, info
 
 
 def _check_fit_arguments(brdf, order, basis, ridge, grazing_cutoff, chunk_size):

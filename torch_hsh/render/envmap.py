@@ -866,15 +866,16 @@ class EnvironmentLighting(torch.nn.Module):
         if isinstance(lighting, EnvironmentMap):
             if light_order is None:
                 raise ValueError("`light_order` is required when `lighting` is an EnvironmentMap")
-            coeffs = lighting.sh_coefficients(light_order)
+            coefficients = lighting.sh_coefficients(light_order)
         else:
-            coeffs, _ = _lighting_coefficients(lighting, light_order, lighting if isinstance(lighting, torch.Tensor) else None)
-        coeffs = coeffs.detach().clone()
+            tensor = lighting if isinstance(lighting, torch.Tensor) else None
+            coefficients, _ = _lighting_coefficients(lighting, light_order, tensor)
+        coefficients = coefficients.detach().clone()
         if learnable:
-            self.coefficients = torch.nn.Parameter(coeffs)
+            self.coefficients = torch.nn.Parameter(coefficients)
         else:
-            self.register_buffer("coefficients", coeffs)
-        self.light_order = _sh_order(coeffs.shape[-1], "lighting")
+            self.register_buffer("coefficients", coefficients)
+        self.light_order = _sh_order(coefficients.shape[-1], "lighting")
 
     def forward(self, normals: torch.Tensor, brdf: torch.Tensor) -> torch.Tensor:
         return render_envmap(normals, brdf, self.coefficients)

@@ -623,7 +623,7 @@ def demo_scene(
     ones = torch.ones(h, w, 1, dtype=f64)
     safe_n = torch.where(disc[..., None], normals, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
     ggx = CookTorranceGGX(albedo=albedo, specular=0.4 * ones, roughness=0.4 * ones, f0=0.3)
-    phong = BlinnPhong(kd=albedo, ks=0.3 * ones, shininess=30.0 * ones)
+    phong = BlinnPhong(albedo=albedo, specular=0.3 * ones, shininess=30.0 * ones)
     img = torch.where(
         (labels == 0)[None, ..., None],
         render_model(safe_n, lights, ggx, intensities=inten),
@@ -670,7 +670,7 @@ def synthetic_scene(size: int = 48, n_lights: int = 40, seed: int = 0, dtype=tor
     ones = torch.ones(size, size, 1, dtype=dtype)
     models = [
         CookTorranceGGX(albedo=albedo, specular=0.3 * ones, roughness=0.5 * ones, f0=0.3),
-        BlinnPhong(kd=albedo, ks=0.3 * ones, shininess=20.0 * ones),
+        BlinnPhong(albedo=albedo, specular=0.3 * ones, shininess=20.0 * ones),
         TorranceSparrow(albedo, 0.15 * ones, 0.35 * ones, 1.5 * ones),
     ]
     img = torch.zeros(n_lights, size, size, 3, dtype=dtype)
