@@ -57,7 +57,7 @@ def numeric_mirror_spectrum(basis_name: str, order: int, n: int = 64) -> torch.T
 
 def closed_form(basis_name: str, order: int) -> torch.Tensor:
     if basis_name == "helmholtz_isotropic":
-        return mirror_spectrum(order, isotropic=True)
+        return mirror_spectrum(order, basis="helmholtz_isotropic")
     return zernike_mirror_coefficients(order)
 
 
