@@ -102,7 +102,7 @@ def test_save_load_roundtrip_srgb(tmp_path, fmt):
 
 def test_linear_write_and_read(tmp_path):
     imgs, lights, mask, _ = _scene()
-    save_rti(tmp_path / "cap", imgs, lights, mask=mask, encode_srgb=False)
+    save_rti(tmp_path / "cap", imgs, lights, mask=mask, linear=True)
     d = load_rti(tmp_path / "cap", linear=True, dtype=torch.float64)
     assert float((d.images - imgs / imgs.max()).abs().max()) <= 0.5 / 255 + 1e-9
 

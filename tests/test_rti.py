@@ -349,6 +349,8 @@ def test_projection_error_and_plain_fit_on_held_out_lights():
     assert all(e[1] < e[0] and e[2] < 0.1 for e in err.values()), err
     with pytest.raises(ValueError, match="max_angle_deg"):
         project_to_rti(n, a, 9, max_angle_deg=95)
+    with pytest.raises(TypeError, match="`linear` must be a bool"):
+        project_to_rti(n, a, 9, linear="srgb")
 
 
 def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):

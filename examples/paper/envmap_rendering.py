@@ -194,7 +194,7 @@ def main(argv=None):
         imgs = {"helmholtz_isotropic": render_envmap(n, fits[key, "helmholtz_isotropic"], Lc)}
         h_ref = render_envmap_reference(n, fits[key, "helmholtz_isotropic"], bl_env)
         for b in BASES[1:]:
-            imgs[b] = render_envmap_reference(n, basis_callable(b, fits[key, b], P), bl_env, chunk_elements=2 ** 23)
+            imgs[b] = render_envmap_reference(n, basis_callable(b, fits[key, b], P), bl_env, chunk_size=2 ** 23)
         scale = float(gt.max())
         mae = {b: float((imgs[b].clamp(min=0) / scale - gt / scale).abs().mean()) for b in BASES}
         qcheck = float((h_ref - imgs["helmholtz_isotropic"]).abs().mean()) / scale

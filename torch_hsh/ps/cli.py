@@ -317,7 +317,7 @@ def _solver_options(args) -> Dict[str, Any]:
 def _save_surface(stage, args, res, mask, metrics, say) -> None:
     """depth.npy + depth.exr (``--depth``), mesh.ply / mesh.obj (``--mesh``) and surface.png from the normals."""
     from ..io.diligent import _write_png
-    from ..surface import integrate_normals, save_depth, save_mesh, shade_depth
+    from ..surface import integrate_normals, write_depth, write_mesh, shade_depth
 
     t = time.perf_counter()
     n = res.normals.detach().cpu().double()
@@ -331,11 +331,11 @@ def _save_surface(stage, args, res, mask, metrics, say) -> None:
         metrics["surface"] = {"integrator": args.integrator, "components": info.get("components"),
                               "runtime_s": time.perf_counter() - t}
     if args.depth:
-        save_depth(stage.file("depth.npy"), depth, m)
-        save_depth(stage.file("depth.exr"), depth, m)
+        write_depth(stage.file("depth.npy"), depth, m)
+        write_depth(stage.file("depth.exr"), depth, m)
     if args.mesh:
         albedo = res.albedo.detach().cpu().double() if getattr(res, "albedo", None) is not None else None
-        save_mesh(stage.file(f"mesh.{args.mesh}"), depth, m, normals=n, albedo=albedo)
+        write_mesh(stage.file(f"mesh.{args.mesh}"), depth, m, normals=n, albedo=albedo)
     img = shade_depth(depth, m).cpu().numpy()
     _write_png(stage.file("surface.png"), _to_png8(img))
     say(f"surface: {how} in {metrics['surface']['runtime_s']:.2f} s")

@@ -342,7 +342,7 @@ class Settings:
         None, "raw saturation level (``None``: detected), see :func:`~torch_hsh.ps.observation_weights`.",
         check_saturation)
     nonneg: bool = _option(True, "apply the non-negativity safeguard to the final coefficients.")
-    chunk_size: Optional[int] = _option(None, """pixels per batch of the per-pixel passes (bounded memory).
+    chunk_size: Optional[int] = _option(None, """pixels per chunk of the per-pixel passes (bounded memory).
         ``None`` (default): 8192 on the CPU; on a GPU, where fewer and
         larger batches are faster, the largest that keeps a batch within a
         quarter of the free device memory (8192 to 262144, see

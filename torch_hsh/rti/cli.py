@@ -289,7 +289,7 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         lz = torch.nn.functional.normalize(res.lights.double(), dim=-1)[:, 2].clamp(-1, 1)
         max_angle = min(90.0, float(torch.rad2deg(torch.arccos(lz)).max()))
     coefficients = project_to_rti(n, a, args.terms, mask=mask, exposure=exposure, max_angle_deg=max_angle,
-                            transfer="linear" if args.linear_output else "srgb")
+                                  linear=args.linear_output)
     written = []
     if args.rti is not None:
         write_rti_hsh(args.rti, coefficients, overwrite=args.overwrite)
