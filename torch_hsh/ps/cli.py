@@ -24,7 +24,7 @@ Written files: ``normals.npy`` (H, W, 3) float32 in the DiLiGenT frame (zero out
 ``coefficients.exr`` (coefficient maps), ``metrics.json``, ``normal_map.png``, ``confidence.png``
 (8-bit, when the solver reports a confidence map), ``error_map.png`` (with ground truth) and
 ``relighting.png`` (input / relit / error; these two need matplotlib), ``result.npz`` (the whole
-:class:`~torch_hsh.ps.HSHResult`, see ``HSHResult.load``), ``manifest.json``; with ``--depth``:
+:class:`~torch_hsh.ps.HSHResult`, see ``HSHResult.read``), ``manifest.json``; with ``--depth``:
 ``depth.npy``, ``depth.exr`` and ``surface.png`` (a shaded rendering of the integrated depth); with
 ``--mesh``: ``mesh.ply`` (or ``mesh.obj``) and ``surface.png``.
 
@@ -501,7 +501,7 @@ def _run(args, ap: argparse.ArgumentParser, load: Callable[..., Dict[str, Any]])
 
         np.save(stage.file("normals.npy"), res.normals.detach().cpu().numpy().astype(np.float32))
         if hasattr(res, "save"):
-            res.save(stage.file("result.npz"))
+            res.write(stage.file("result.npz"))
         if args.depth or args.mesh:
             _save_surface(stage, args, res, mask, metrics, say)
         write_coefficient_maps_exr(stage.file("coefficients.exr"), res.coefficients.detach().cpu().float())

@@ -72,7 +72,7 @@ class HSHResult:
     confidence: Optional[torch.Tensor] = None
     depth: Optional[torch.Tensor] = None
 
-    def save(self, path, channels: Optional[Sequence[str]] = None, weights: bool = False,
+    def write(self, path, channels: Optional[Sequence[str]] = None, weights: bool = False,
              overwrite: bool = False) -> None:
         """Write the result to one ``.npz`` file with a versioned JSON metadata entry.
 
@@ -90,8 +90,8 @@ class HSHResult:
             overwrite: replace an existing file (default: refuse).
 
         Example:
-            >>> res.save("bunny_result.npz")  # doctest: +SKIP
-            >>> HSHResult.load("bunny_result.npz").normals.shape  # doctest: +SKIP
+            >>> res.write("bunny_result.npz")  # doctest: +SKIP
+            >>> HSHResult.read("bunny_result.npz").normals.shape  # doctest: +SKIP
             torch.Size([256, 256, 3])
         """
         import json
@@ -133,8 +133,8 @@ class HSHResult:
         tmp.replace(p)
 
     @classmethod
-    def load(cls, path, device=None) -> "HSHResult":
-        """Read a result written by :meth:`save` (``weights`` is ``(*S, 0)`` if it was not stored).
+    def read(cls, path, device=None) -> "HSHResult":
+        """Read a result written by :meth:`write` (``weights`` is ``(*S, 0)`` if it was not stored).
 
         Raises:
             FileNotFoundError: missing file.

@@ -134,7 +134,7 @@ def _load_result(args, ap: argparse.ArgumentParser):
     torch.set_num_threads(args.threads)
     src = Path(args.result)
     try:
-        return HSHResult.load(src / "result.npz" if src.is_dir() else src)
+        return HSHResult.read(src / "result.npz" if src.is_dir() else src)
     except (OSError, ValueError) as err:
         raise InputError(str(err)) from err
 
