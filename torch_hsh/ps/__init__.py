@@ -21,7 +21,7 @@ pipeline: the cast-shadow loop (:mod:`~torch_hsh.ps.shadows`), the interreflecti
 (:mod:`~torch_hsh.ps.interreflections`) and the held-out-light evaluation
 (:mod:`~torch_hsh.ps.evaluation`).
 
-Inputs everywhere: ``images (L, H, W, C)`` or ``(L, P, C)``, ``lights (L, 3)`` in the DiLiGenT frame
+Inputs everywhere: ``images (L, H, W, C)`` or ``(L, N, C)``, ``lights (L, 3)`` in the DiLiGenT frame
 (x right, y up, z toward the camera), optional ``intensities (L,)``/``(L, C)`` and ``mask (H, W)``.
 
 Example:

@@ -467,8 +467,8 @@ def _run(args, ap: argparse.ArgumentParser, load: Callable[..., Dict[str, Any]])
                  f"so that at least 3 of the L = {L} lights remain, got {args.holdout}")
     data = {k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in data.items()}
     imgs, lights, inten, mask, gt = (data[k] for k in ("images", "lights", "intensities", "mask", "normals_gt"))
-    P = int(mask.sum())
-    if P == 0:
+    N = int(mask.sum())
+    if N == 0:
         raise InputError(f"{data['name']}: the mask selects no pixel")
 
     previous = _previous_result(out)
@@ -476,11 +476,11 @@ def _run(args, ap: argparse.ArgumentParser, load: Callable[..., Dict[str, Any]])
         say(f"--out {out} holds a torch-hsh result ({previous}); it is replaced when this run ends")
     # ---- solve (the output folder is staged only now, so a failed solve creates nothing)
     with _Staging(out) as stage:
-        say(f"data: {data['name']}  pixels={P} lights={L} order={order} "
+        say(f"data: {data['name']}  pixels={N} lights={L} order={order} "
             f"materials={materials if materials else 'independent'} device={dev}")
         res, t_hsh, rows = _solve_methods(args, opts, imgs, lights, inten, mask, gt, say)
         metrics: Dict[str, Any] = {
-            "method": "hsh", "order": order, "materials": materials, "pixels": P, "lights": L,
+            "method": "hsh", "order": order, "materials": materials, "pixels": N, "lights": L,
             "runtime_s": t_hsh, "data": data["name"], "drop_first": args.drop_first,
             "methods": {name: {"mean_angular_error_deg": m, "median_angular_error_deg": md, "runtime_s": tt}
                         for name, m, md, tt in rows},

@@ -27,7 +27,7 @@ small state objects between them (data flows one way):
 stage  module                      returns             what it does
 =====  ==========================  ==================  =====================================
 1      :mod:`.observations`        ``Observations``    flatten, normalise, noise / saturation / shadow weights
-2      :mod:`.initialisation`      ``(P, 3)`` normals  robust Lambertian start
+2      :mod:`.initialisation`      ``(N, 3)`` normals  robust Lambertian start
 3a     :mod:`.materials`           ``M``, criterion    ``materials="auto"``: ``M`` by held-out-light cross-validation
 3      :mod:`.calibration`         ``Calibration``     shared basis BRDFs on a pixel subset (shared model)
 4      :mod:`.refinement`          ``Refinement``      per-pixel normals (and mixing weights), in chunks
@@ -105,10 +105,10 @@ def solve_hsh(
       the normal is then set by the ridge, not by the data.
 
     Args:
-        images: ``(L, H, W, C)`` or ``(L, P, C)`` linear images (trailing channel axis).
+        images: ``(L, H, W, C)`` or ``(L, N, C)`` linear images (trailing channel axis).
         lights: ``(L, 3)`` directions toward the lights (DiLiGenT frame).
         intensities: ``None``, ``(L,)`` or ``(L, C)`` light intensities (images are divided by them).
-        mask: ``(H, W)`` / ``(P,)`` bool object mask (default: every pixel).
+        mask: ``(H, W)`` / ``(N,)`` bool object mask (default: every pixel).
         settings: a :class:`~torch_hsh.ps.Settings` with the options below
             (default: every option at its default).
         **overrides: options by name, applied on top of ``settings``
@@ -214,7 +214,7 @@ def _refinement(obs, n_start, cfg: Settings, basis, scale):
         iters = ref.iterations
         for _ in range(1, cfg.refinement_passes):  # restart from the refined normals (fresh robust weights, cone search)
             n_prev = ref.normals
-            ref.weights = ref.weights.new_empty(0)  # release the (P, L) weights before the next pass allocates its own
+            ref.weights = ref.weights.new_empty(0)  # release the (N, L) weights before the next pass allocates its own
             ref = refine(obs, n_prev, cfg, basis, scale)
             iters += ref.iterations
         ref.iterations = iters
@@ -297,7 +297,7 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     weights_map = scatter_pixels(ref.weights, d.mask)
     ref.weights = ref.weights.new_empty(0)
     s = obs.scale  # the solver ran at unit brightness: coefficients are linear in the images
-    # the coefficients are either compact (P, C, K) rows or the map's rows, written in place by stage 5
+    # the coefficients are either compact (N, C, K) rows or the map's rows, written in place by stage 5
     coef_rows = fit.coefficients.mul_(s)
     pix = fit.pixels
     albedo = coef_rows.new_empty(normals.shape[0], coef_rows.shape[1])

@@ -216,7 +216,7 @@ class HoldoutResult:
 
 
 def _albedo_vector(order: int, cos_o: torch.Tensor) -> torch.Tensor:
-    """``D_k(cos_o) = integral of B_k(wi, wo) cos(theta_i) dwi`` for every isotropic function, ``(P, K)``.
+    """``D_k(cos_o) = integral of B_k(wi, wo) cos(theta_i) dwi`` for every isotropic function, ``(N, K)``.
 
     The terms are :func:`torch_hsh.bases.helmholtz.albedo_terms`; they are evaluated here on the solver's
     polar table (not the HSH of ``fitting.directional_albedo``) and summed per column, which keeps this
@@ -274,7 +274,7 @@ def directional_albedo_view(coefficients: torch.Tensor, cos_o: torch.Tensor) -> 
 def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, order: int, c: float) -> torch.Tensor:
     """Per-pixel confidence in ``[0, 1]``: enough inliers, times a fit at the noise level.
 
-    ``weights (P, L)`` robust weights, ``residual (P,)`` weighted RMS residual,
+    ``weights (N, L)`` robust weights, ``residual (N,)`` weighted RMS residual,
     ``scale`` the robust residual scale of the solve. Two factors:
 
     * coverage ``clamp((n_eff - 3) / (U - 3), 0, 1)`` with ``n_eff`` the sum of

@@ -357,7 +357,7 @@ class Settings:
     seed: int = _option(0, "seed of the calibration subset.")
     progress: bool = _option(False, """show tqdm progress bars (the robust Lambertian start normals, the
         calibration starts, the refinement's and the coefficient fit's chunks of pixels).""")
-    valid: Optional[torch.Tensor] = _option(None, """optional ``(L, H, W)`` / ``(L, P)`` bool: False excludes an
+    valid: Optional[torch.Tensor] = _option(None, """optional ``(L, H, W)`` / ``(L, N)`` bool: False excludes an
         observation (for example one known to be in a cast shadow). Non-finite
         and negative observations are always excluded; an excluded
         observation never influences another pixel.""", compare=False)
@@ -468,7 +468,7 @@ class Settings:
         return dtype if self.work_dtype is None else self.work_dtype
 
     def chunked(self, y: torch.Tensor, dtype: torch.dtype) -> "Settings":
-        """These settings with ``chunk_size`` resolved for the observations ``y (P, L, C)`` computed in ``dtype``
+        """These settings with ``chunk_size`` resolved for the observations ``y (N, L, C)`` computed in ``dtype``
         (:func:`resolve_chunk`; ``chunk_auto`` records whether it was chosen here)."""
         from ..kernel import num_isotropic
 
