@@ -554,8 +554,8 @@ def test_settings_are_checked_from_their_fields_and_solve_hsh_takes_them():
     assert torch.equal(a.normals, b.normals) and torch.equal(a.coefficients, b.coefficients)
 
 
-def test_old_result_path_of_holdout_evaluation_warns_and_forwards():
+def test_holdout_evaluation_has_one_path():
     from torch_hsh.ps import result
 
-    with pytest.warns(DeprecationWarning, match="torch_hsh.ps.holdout_evaluation"):
-        assert result.holdout_evaluation is ps.holdout_evaluation
+    assert not hasattr(result, "holdout_evaluation")  # one name per thing: torch_hsh.ps.holdout_evaluation
+    assert not hasattr(ps, "hsh")  # the solver is torch_hsh.ps.solve_hsh

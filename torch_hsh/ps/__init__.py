@@ -57,11 +57,3 @@ __all__ = [
     "solve_hsh",
     "trimmed_weights",
 ]
-
-
-def __getattr__(name):
-    if name == "hsh":  # the deprecated module path (torch_hsh.ps.pipeline); importing it warns
-        import importlib
-
-        return importlib.import_module(f"{__name__}.hsh")
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -291,16 +291,3 @@ def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, orde
     fit = 1.0 / (1.0 + (residual / (c * sc)) ** 2)
     out = cover * fit
     return torch.where(torch.isfinite(out), out, torch.zeros_like(out))
-
-
-def __getattr__(name):
-    # deprecated alias: holdout_evaluation sits above the pipeline (torch_hsh.ps.evaluation), which imports
-    # this module; importing it from here by name at call time keeps this module free of that cycle
-    if name == "holdout_evaluation":
-        import importlib
-        import warnings
-
-        warnings.warn("torch_hsh.ps.result.holdout_evaluation is deprecated: use torch_hsh.ps.holdout_evaluation "
-                      "(torch_hsh.ps.evaluation)", DeprecationWarning, stacklevel=2)
-        return importlib.import_module(f"{__package__}.evaluation").holdout_evaluation
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
