@@ -9,6 +9,8 @@ import torch
 from .._checks import check_shape, validation_enabled
 from ..bases import Basis, get_basis
 
+__all__ = ["BasisLike", "infer_order", "default_quadrature_sizes"]
+
 BasisLike = Union[str, Basis]
 _DEFAULT = "helmholtz_isotropic"
 _TWO_PI = 2.0 * math.pi
