@@ -500,7 +500,7 @@ def _run(args, ap: argparse.ArgumentParser, load: Callable[..., Dict[str, Any]])
             metrics["holdout"] = _holdout_metrics(args, opts, imgs, lights, inten, mask, say)
 
         np.save(stage.file("normals.npy"), res.normals.detach().cpu().numpy().astype(np.float32))
-        if hasattr(res, "save"):
+        if hasattr(res, "write"):
             res.write(stage.file("result.npz"))
         if args.depth or args.mesh:
             _save_surface(stage, args, res, mask, metrics, say)
