@@ -11,9 +11,9 @@ Every model is called as ``model(wi, wo) -> (..., C)``:
 * Parameters are Python numbers, sequences of numbers or float tensors whose
   **last axis is the channel axis** and whose leading axes broadcast against the
   leading shape of the directions. Per-pixel parameters are supported by shape:
-  directions ``(L, P, 3)`` (lights x pixels) with ``albedo`` of shape ``(P, 3)``
-  and ``roughness`` of shape ``(P, 1)`` give ``(L, P, 3)``. A scalar per-pixel
-  parameter therefore needs a trailing singleton axis (``(P, 1)``, not ``(P,)``).
+  directions ``(L, N, 3)`` (lights x pixels) with ``albedo`` of shape ``(N, 3)``
+  and ``roughness`` of shape ``(N, 1)`` give ``(L, N, 3)``. A scalar per-pixel
+  parameter therefore needs a trailing singleton axis (``(N, 1)``, not ``(N,)``).
 * Parameters are registered as buffers without copying: a tensor passed with
   ``requires_grad=True`` receives gradients. They are cast to the dtype and
   device of the directions at call time (float32 and float64 are supported).
@@ -224,7 +224,7 @@ class Lambertian(BRDFModel):
     r"""Lambertian reflectance :math:`f = \rho/\pi`.
 
     Args:
-        albedo: diffuse albedo ``rho >= 0``, trailing channel axis (e.g. ``(3,)`` or ``(P, 3)``).
+        albedo: diffuse albedo ``rho >= 0``, trailing channel axis (e.g. ``(3,)`` or ``(N, 3)``).
         eps: unused (kept for a uniform constructor).
 
     Reciprocal and isotropic; directional albedo equals ``albedo`` exactly.

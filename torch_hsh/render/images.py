@@ -18,7 +18,7 @@ A BRDF is either
 
 * a tensor of **coefficient maps** in the isotropic Helmholtz basis
   (:func:`torch_hsh.helmholtz_isotropic_world`), shape ``(*S, C, K)`` with
-  ``S`` the pixel shape (``(H, W)`` or ``(P,)``) and ``K = (P+1)(P+2)(P+3)/6``
+  ``S`` the pixel shape (``(H, W)`` or ``(N,)``) and ``K = (P+1)(P+2)(P+3)/6``
   (the order is inferred from ``K``), or
 * a **callable** ``f(wi, wo) -> (..., C)`` taking local directions (for
   example an analytic model of :mod:`torch_hsh.brdf` with per-pixel
@@ -383,7 +383,7 @@ def render(
 
     Args:
         normals: ``(*S, 3)`` per-pixel normals, world frame (DiLiGenT frame:
-            x right, y up, z toward the camera); ``S`` is ``(H, W)`` or ``(P,)``.
+            x right, y up, z toward the camera); ``S`` is ``(H, W)`` or ``(N,)``.
         lights: ``(L, 3)`` unit directions toward the lights.
         brdf: coefficient maps ``(*S, C, K)`` in the isotropic Helmholtz basis,
             or a callable ``f(wi, wo) -> (L, *S, C)`` on local directions
