@@ -37,7 +37,7 @@ def synthetic(n_pix: int, n_lights: int, seed: int = 0):
     l = torch.nn.functional.normalize(l, dim=-1)
     alb = 0.2 + 0.6 * torch.rand(n_pix, 3, generator=g, dtype=dt)
     img = render(n, l, BlinnPhong(alb, torch.full((n_pix, 1), 0.3, dtype=dt), torch.full((n_pix, 1), 20.0, dtype=dt)),
-                 read_noise=1e-3, seed=0)
+                 read_std=1e-3, seed=0)
     return img, l, None, None, n
 
 

@@ -94,7 +94,7 @@ def bumpy_shadows(size: int = 64, lights: int = 40, seed: int = 1) -> dict:
 
     ``bumpy_heightfield(size, n_bumps=10, seed=seed, smoothness=0.12) x 1.6`` (pixel units), its
     exact normals, ``cone_lights(lights, 65 deg, seed=seed + 1)``, Blinn-Phong with albedo 0.6 (grey),
-    ``ks = 0.3``, shininess 20; each image is ``visibility x direct + 0.3 x albedo / pi`` (the
+    ``specular = 0.3``, shininess 20; each image is ``visibility x direct + 0.3 x albedo / pi`` (the
     ambient is 0.3 of the Lambertian radiance under a unit light at the view), visibility from
     ``cast_shadow_mask``. Follows the description of the bumpy field in docs/photometric_stereo.md
     (whose script was not committed), so its numbers need not match that page's.
@@ -112,9 +112,9 @@ def bumpy_shadows(size: int = 64, lights: int = 40, seed: int = 1) -> dict:
     L = cone_lights(lights, 65.0, seed=seed + 1, dtype=f64)
     vis = cast_shadow_mask(h, L)
     ones = torch.ones(size, size, 1, dtype=f64)
-    kd = 0.6 * torch.ones(size, size, 3, dtype=f64)
-    img = render_model(n, L, BlinnPhong(kd=kd, ks=0.3 * ones, shininess=20.0 * ones))
-    img = img * vis[..., None] + 0.3 * kd / math.pi
+    albedo = 0.6 * torch.ones(size, size, 3, dtype=f64)
+    img = render_model(n, L, BlinnPhong(albedo=albedo, specular=0.3 * ones, shininess=20.0 * ones))
+    img = img * vis[..., None] + 0.3 * albedo / math.pi
     mask = torch.ones(size, size, dtype=torch.bool)
     return {"images": img, "lights": L, "intensities": None, "mask": mask, "normals_gt": n,
             "shadowed": float((~vis).double().mean())}

@@ -2,7 +2,7 @@
 
 The BRDF is a reciprocal, isotropic diffuse + normalised Blinn--Phong model
 
-    f(wi, wo) = kd / pi + ks (s + 2) / (2 pi) (n . h)^s,   h = (wi + wo) / |wi + wo|.
+    f(wi, wo) = albedo / pi + specular (s + 2) / (2 pi) (n . h)^s,   h = (wi + wo) / |wi + wo|.
 
 1. Deterministic projection (Eq. 14) with the reduced isotropic quadrature, energy
    integral by the same rule, and Acc(P) (Eq. 17) for every truncation order.
@@ -24,10 +24,10 @@ import torch
 import torch_hsh
 
 
-def blinn_phong(kd: float, ks: float, s: float):
+def blinn_phong(albedo: float, specular: float, s: float):
     def f(wi, wo):
         h = torch.nn.functional.normalize(wi + wo, dim=-1)
-        return kd / math.pi + ks * (s + 2) / (2 * math.pi) * h[..., 2].clamp(min=0) ** s
+        return albedo / math.pi + specular * (s + 2) / (2 * math.pi) * h[..., 2].clamp(min=0) ** s
 
     return f
 
@@ -43,8 +43,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--order", type=int, default=8)
     ap.add_argument("--shininess", type=float, default=20.0)
-    ap.add_argument("--kd", type=float, default=0.5)
-    ap.add_argument("--ks", type=float, default=0.3)
+    ap.add_argument("--albedo", type=float, default=0.5, help="diffuse albedo")
+    ap.add_argument("--specular", type=float, default=0.3, help="specular weight")
     ap.add_argument("--samples", type=int, default=4000, help="scattered samples for the least-squares fit")
     ap.add_argument("--basis", default="helmholtz_isotropic")
     ap.add_argument("--seed", type=int, default=0)
@@ -54,7 +54,7 @@ def main(argv=None):
         args.order, args.samples = 4, 1000
 
     P = args.order
-    f = blinn_phong(args.kd, args.ks, args.shininess)
+    f = blinn_phong(args.albedo, args.specular, args.shininess)
     basis = torch_hsh.bases.get_basis(args.basis)
     # more nodes than the band-limited default: the lobe is not band-limited
     nt, nph = 4 * (P + 1), 8 * P + 8
@@ -67,9 +67,9 @@ def main(argv=None):
     wi, wo = random_pairs(args.samples, args.seed)
     ti, to = random_pairs(2000, args.seed + 1)
     truth = f(ti, to)
-    print(f"BRDF: kd={args.kd} + Blinn-Phong ks={args.ks}, s={args.shininess}; basis {basis.name}")
+    print(f"BRDF: albedo={args.albedo} + Blinn-Phong specular={args.specular}, s={args.shininess}; basis {basis.name}")
     print(f"projection: order {P}, {a.shape[-1]} coefficients, quadrature ({nt} x {nt} x {nph}), {t_proj:.1f} s")
-    print(f"energy  int f^2 = {float(energy):.6g};  2 kd (Lambertian part of a_0) = {2 * args.kd:.3f}, a_0 = {float(a[0]):.4f}")
+    print(f"energy  int f^2 = {float(energy):.6g};  2 albedo (Lambertian part of a_0) = {2 * args.albedo:.3f}, a_0 = {float(a[0]):.4f}")
     print()
     print(" P   K     Acc_proj(P)   LS-fit rel. RMS (held out)   LS rel. residual")
     for p in range(P + 1):
@@ -81,12 +81,12 @@ def main(argv=None):
         pred = torch_hsh.reconstruct(c, ti, to, p, basis)
         rel = float((pred - truth).norm() / truth.norm())
         print(f"{p:2d} {K:4d}    {float(acc_proj[p]):.6f}     {rel:.4e}                   {float(info['relative_residual']):.4e}")
-    lam = torch_hsh.lambertian_spectrum(args.kd, P, basis)
+    lam = torch_hsh.lambertian_spectrum(args.albedo, P, basis)
     n = torch.tensor([0.0, 0.0, 1.0], dtype=a.dtype)
     d, w = torch_hsh.direction_quadrature(64, 8)
     albedo_true = float((f(d, n.expand_as(d)) * d[:, 2] * w).sum())
     print()
-    print(f"closed-form Lambertian spectrum: a_0 = 2 kd = {float(lam[0]):.3f}")
+    print(f"closed-form Lambertian spectrum: a_0 = 2 albedo = {float(lam[0]):.3f}")
     print(f"directional albedo at normal exitance: closed form from the order-{P} projection "
           f"{float(torch_hsh.directional_albedo(a, n, basis=basis)):.4f}, quadrature of f {albedo_true:.4f}")
 

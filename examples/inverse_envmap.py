@@ -212,18 +212,18 @@ def main(argv=None) -> dict:
     log_alb = torch.zeros(n.shape[0], 3, dtype=DT, requires_grad=True)
     scale2 = float(imgs2.pow(2).mean())
 
-    def coeffs():
+    def coefficients():
         return log_alb.exp().unsqueeze(-1) * grey.coefficients  # (P, C, K): albedo x shared BRDF
 
     def loss2():
-        a = coeffs()
+        a = coefficients()
         pred = torch.stack([render_envmap(n, a, L) for L in L_train])
         return ((pred - imgs2) ** 2).mean() / scale2
 
     t = time.time()
     adam([log_alb, *grey.parameters()], loss2, args.steps, lr=0.03)
     with torch.no_grad():
-        a = coeffs()
+        a = coefficients()
         fit = torch.stack([render_envmap(n, a, L) for L in L_train])
         relit = render_envmap(n, a, L_held)
     results["textured_adam"] = {"fit": rel_rmse(fit, imgs2), "relit": rel_rmse(relit, truth2)}

@@ -51,7 +51,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     from torch_hsh.io.diligent import load_diligent
-    from torch_hsh.surface import integrate_normals, save_depth, save_mesh, shade_depth
+    from torch_hsh.surface import integrate_normals, write_depth, write_mesh, shade_depth
 
     d = load_diligent(args.data, dtype=torch.float64)
     if d.normals_gt is None:
@@ -67,10 +67,10 @@ def main(argv=None):
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         for name in ("depth.npy", "depth.exr"):
-            print("wrote", save_depth(out / name, depth, d.mask, overwrite=args.overwrite))
+            print("wrote", write_depth(out / name, depth, d.mask, overwrite=args.overwrite))
         for name in ("mesh.ply", "mesh.obj"):
             try:
-                print("wrote", save_mesh(out / name, depth, d.mask, d.normals_gt, overwrite=args.overwrite))
+                print("wrote", write_mesh(out / name, depth, d.mask, d.normals_gt, overwrite=args.overwrite))
             except ImportError as e:
                 print(f"skipped {name}: {e}")
         png = out / "shaded.png"

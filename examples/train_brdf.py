@@ -121,7 +121,7 @@ def main(argv=None) -> int:
     if args.target == "ggx":
         target = CookTorranceGGX(albedo=[0.60, 0.35, 0.20], specular=0.5, roughness=args.roughness, f0=0.04)
     else:
-        target = BlinnPhong(kd=[0.60, 0.35, 0.20], ks=0.4, shininess=8.0)
+        target = BlinnPhong(albedo=[0.60, 0.35, 0.20], specular=0.4, shininess=8.0)
     target = target.to(device)
     wi, wo, f = make_samples(target, args.train_samples, gen, device)
     wi_te, wo_te, f_te = make_samples(target, args.test_samples, gen, device)

@@ -46,12 +46,12 @@ def synthetic(kind: str, p: int, l: int, seed: int, noise: float = 1e-3):
     albedo = 0.2 + 0.6 * torch.rand(p, 3, generator=g, dtype=DT)
     shapes = [
         Lambertian(one),
-        BlinnPhong(kd=one, ks=0.4 * one, shininess=8.0 * one),
+        BlinnPhong(albedo=one, specular=0.4 * one, shininess=8.0 * one),
         CookTorranceGGX(albedo=0.3 * one, specular=one, roughness=0.5 * one, f0=0.9),
     ]
     tint = torch.tensor([[1.0, 0.8, 0.6], [0.5, 0.7, 1.0], [0.9, 0.4, 0.9]], dtype=DT)
     if kind == "dichromatic":
-        img = render(n, d, BlinnPhong(kd=albedo, ks=0.4 * one, shininess=8.0 * one))
+        img = render(n, d, BlinnPhong(albedo=albedo, specular=0.4 * one, shininess=8.0 * one))
     else:
         used = {"lambert": [0], "phong": [1], "2mat": [0, 1], "3mat": [0, 1, 2]}[kind]
         label = torch.arange(p) % len(used)

@@ -52,7 +52,7 @@ import suite as suite_mod  # noqa: E402
 
 
 def solution_loss(obs, basis: torch.Tensor, normals: torch.Tensor, scale: float, order: int, c: float,
-                  chunk: int = 4096) -> torch.Tensor:
+                  chunk_size: int = 4096) -> torch.Tensor:
     """Per-pixel Cauchy loss ``(P,)`` of the shared model at ``basis (M, K)`` and ``normals (P, 3)``.
 
     ``obs`` is the solver's :class:`~torch_hsh.ps.observations.Observations` (unit brightness); ``scale``
@@ -65,8 +65,8 @@ def solution_loss(obs, basis: torch.Tensor, normals: torch.Tensor, scale: float,
     y, w0 = obs.data.y.double(), obs.weights.double()
     des = MixedDesign(basis.double(), obs.data.lights.double(), order)
     out = []
-    for s in range(0, normals.shape[0], chunk):
-        sl = slice(s, s + chunk)
+    for s in range(0, normals.shape[0], chunk_size):
+        sl = slice(s, s + chunk_size)
         _, res = irls_weights(des(normals[sl].double()), y[sl].transpose(1, 2), w0[sl].clone(), w0[sl], scale, c, 3)
         out.append((w0[sl] * cauchy_rho(res, scale, c)).sum(-1))
     return torch.cat(out)

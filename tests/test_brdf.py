@@ -41,11 +41,11 @@ def all_models(dtype=D64):
     """One instance of every model with moderate RGB / scalar parameters."""
     return {
         "lambertian": Lambertian([0.2, 0.5, 0.8]),
-        "torrance_sparrow": TorranceSparrow(rho_d=[0.2, 0.3, 0.4], rho_s=0.3, sigma=0.35, eta=1.45),
+        "torrance_sparrow": TorranceSparrow(albedo=[0.2, 0.3, 0.4], specular=0.3, sigma=0.35, eta=1.45),
         "ggx": CookTorranceGGX(albedo=[0.2, 0.3, 0.4], specular=0.8, roughness=0.45, f0=0.04),
-        "blinn_phong": BlinnPhong(kd=[0.2, 0.3, 0.4], ks=0.5, shininess=20.0),
+        "blinn_phong": BlinnPhong(albedo=[0.2, 0.3, 0.4], specular=0.5, shininess=20.0),
         "oren_nayar": OrenNayar(albedo=[0.2, 0.5, 0.8], sigma=0.4),
-        "ward": WardAnisotropic(rho_d=[0.2, 0.3, 0.4], rho_s=0.3, alpha_x=0.15, alpha_y=0.4),
+        "ward": WardAnisotropic(albedo=[0.2, 0.3, 0.4], specular=0.3, alpha_x=0.15, alpha_y=0.4),
     }
 
 
@@ -98,7 +98,7 @@ def test_fresnel_matches_polarised_formula(cos_i):
 
 def test_torrance_sparrow_values():
     rd, rs, sg, eta = 0.3, 0.2, 0.3, 1.4
-    m = TorranceSparrow(rho_d=rd, rho_s=rs, sigma=sg, eta=eta)
+    m = TorranceSparrow(albedo=rd, specular=rs, sigma=sg, eta=eta)
     z = sph(0.0, 0.0)
     assert float(m(z, z)) == pytest.approx(rd / math.pi + rs / (math.pi * sg ** 2), rel=1e-14)
     # theta_i = 60 deg, normal exitance: exp(-(theta_i / 2 sigma)^2) / (pi sigma^2 cos theta_i)
@@ -113,13 +113,13 @@ def test_torrance_sparrow_values():
 
 
 def test_torrance_sparrow_not_reciprocal_and_clamped_at_grazing():
-    m = TorranceSparrow(rho_d=0.0, rho_s=1.0, sigma=0.4, eta=1.5)
+    m = TorranceSparrow(albedo=0.0, specular=1.0, sigma=0.4, eta=1.5)
     a, b = sph(0.2, 0.0), sph(1.1, 1.0)
     assert not torch.allclose(m(a, b), m(b, a), rtol=1e-3)
     assert m.reciprocal is False
     # at grazing incidence cos(theta_i) is clamped by eps: finite, equal to the formula with eps
     for eps in (1e-6, 1e-3):
-        mm = TorranceSparrow(rho_d=0.0, rho_s=1.0, sigma=0.4, eta=1.5, eps=eps)
+        mm = TorranceSparrow(albedo=0.0, specular=1.0, sigma=0.4, eta=1.5, eps=eps)
         v = float(mm(sph(math.pi / 2, 0.0), sph(0.0, 0.0)))
         expect = math.exp(-((math.pi / 2 / 0.8) ** 2)) / (math.pi * 0.16 * eps)
         assert v == pytest.approx(expect, rel=1e-9)
@@ -158,7 +158,7 @@ def test_ggx_values():
 
 
 def test_blinn_phong_values():
-    m = BlinnPhong(kd=0.1, ks=0.6, shininess=12.0)
+    m = BlinnPhong(albedo=0.1, specular=0.6, shininess=12.0)
     z = sph(0.0, 0.0)
     assert float(m(z, z)) == pytest.approx(0.1 / math.pi + 0.6 * 20 / (8 * math.pi), rel=1e-14)
     # wi at 60 deg, wo normal: theta_h = 30 deg
@@ -205,12 +205,12 @@ def _ward_reference(wi, wo, rs, ax, ay):
 
 
 def test_ward_values():
-    m = WardAnisotropic(rho_d=0.1, rho_s=0.4, alpha_x=0.2, alpha_y=0.5)
+    m = WardAnisotropic(albedo=0.1, specular=0.4, alpha_x=0.2, alpha_y=0.5)
     z = sph(0.0, 0.0)
     assert float(m(z, z)) == pytest.approx(0.1 / math.pi + 0.4 / (4 * math.pi * 0.1), rel=1e-14)
     gen = torch.Generator().manual_seed(2)
     wi, wo = random_upper(20, gen), random_upper(20, gen)
-    got = WardAnisotropic(rho_d=0.0, rho_s=0.4, alpha_x=0.2, alpha_y=0.5)(wi, wo)[:, 0].numpy()
+    got = WardAnisotropic(albedo=0.0, specular=0.4, alpha_x=0.2, alpha_y=0.5)(wi, wo)[:, 0].numpy()
     assert (got > 1e-20).sum() >= 10  # the comparison covers non-negligible values
     ref = [_ward_reference(wi[k].numpy(), wo[k].numpy(), 0.4, 0.2, 0.5) for k in range(20)]
     assert np.allclose(got, ref, rtol=1e-10, atol=1e-300)
@@ -280,7 +280,7 @@ def test_ggx_directional_albedo_bounded():
 def test_ward_directional_albedo_bounded():
     ax = torch.tensor([0.2, 0.3, 0.5], dtype=D64).reshape(3, 1, 1, 1, 1, 1)
     ay = torch.tensor([0.2, 0.1, 0.5], dtype=D64).reshape(3, 1, 1, 1, 1, 1)
-    m = WardAnisotropic(rho_d=0.0, rho_s=1.0, alpha_x=ax, alpha_y=ay)
+    m = WardAnisotropic(albedo=0.0, specular=1.0, alpha_x=ax, alpha_y=ay)
     wo = sph(THETAS_O[:, None], torch.tensor([0.0, 1.0], dtype=D64))[None]  # (1, 4, 2, 3)
     a = directional_albedo(m, wo)
     assert a.shape == (3, 4, 2, 1)
@@ -289,11 +289,11 @@ def test_ward_directional_albedo_bounded():
 
 def test_blinn_phong_directional_albedo():
     n = torch.tensor([1.0, 5.0, 9.0, 20.0, 100.0], dtype=D64).reshape(5, 1, 1, 1, 1)
-    lobe = directional_albedo(BlinnPhong(kd=0.0, ks=1.0, shininess=n), sph(THETAS_O, 0.0)[None])[..., 0]
+    lobe = directional_albedo(BlinnPhong(albedo=0.0, specular=1.0, shininess=n), sph(THETAS_O, 0.0)[None])[..., 0]
     assert torch.equal(lobe.argmax(1), torch.zeros(5, dtype=torch.long))  # largest at normal exitance
     assert (lobe[:, 0] > 1.0).all() and (lobe[:, 0] <= 1.08).all()  # the documented overshoot
     assert float(lobe[2, 0]) == pytest.approx(1.0748, abs=5e-4)  # n = 9: about the maximum
-    total = directional_albedo(BlinnPhong(kd=0.3, ks=0.6, shininess=n), sph(THETAS_O, 0.0)[None])
+    total = directional_albedo(BlinnPhong(albedo=0.3, specular=0.6, shininess=n), sph(THETAS_O, 0.0)[None])
     assert (total <= 1.0).all()
 
 
@@ -315,11 +315,11 @@ SPECIAL_PAIRS = [
 def test_gradients_finite_at_pole_and_grazing(name, dtype):
     params = {
         "lambertian": dict(albedo=0.5),
-        "torrance_sparrow": dict(rho_d=0.3, rho_s=0.2, sigma=0.3, eta=1.5),
+        "torrance_sparrow": dict(albedo=0.3, specular=0.2, sigma=0.3, eta=1.5),
         "ggx": dict(albedo=0.3, specular=0.5, roughness=0.4, f0=0.05),
-        "blinn_phong": dict(kd=0.3, ks=0.5, shininess=0.5),
+        "blinn_phong": dict(albedo=0.3, specular=0.5, shininess=0.5),
         "oren_nayar": dict(albedo=0.5, sigma=0.3),
-        "ward": dict(rho_d=0.3, rho_s=0.2, alpha_x=0.1, alpha_y=0.3),
+        "ward": dict(albedo=0.3, specular=0.2, alpha_x=0.1, alpha_y=0.3),
     }[name]
     tparams = {k: torch.tensor(v, dtype=dtype, requires_grad=True) for k, v in params.items()}
     m = get_model(name, **tparams)

@@ -50,11 +50,11 @@ def fake_solver(monkeypatch):
         calls.append(dict(order=order, materials=materials, lights=int(lights.shape[0]), **kw))
         lam = ps.lambertian_ls(images, lights, intensities, mask)
         K = torch_hsh.num_isotropic(order)
-        coeffs = torch.zeros(*mask.shape, 3, K, dtype=images.dtype)
-        coeffs[..., 0] = 1.0
+        coefficients = torch.zeros(*mask.shape, 3, K, dtype=images.dtype)
+        coefficients[..., 0] = 1.0
         conf = state["confidence"]
         return SimpleNamespace(
-            normals=lam.normals, coefficients=coeffs, info={"noise_sigma": float("nan"), "iterations": 3},
+            normals=lam.normals, coefficients=coefficients, info={"noise_sigma": float("nan"), "iterations": 3},
             relight=lambda l, e=None: torch.zeros(l.shape[0], *mask.shape, 3, dtype=images.dtype),
             confidence=None if conf is None else conf(mask),
         )
@@ -530,7 +530,7 @@ def test_depth_mesh_and_result_file_from_a_real_solve(tmp_path):
     names = set(_strict_json(out / result_folder.MANIFEST)["files"])
     assert {"depth.npy", "depth.exr", "mesh.ply", "surface.png", "result.npz"} <= names
     depth = np.load(out / "depth.npy")
-    res = ps.HSHResult.load(out / "result.npz")
+    res = ps.HSHResult.read(out / "result.npz")
     mask = res.mask.numpy()
     assert depth.shape == mask.shape and np.isfinite(depth[mask]).all() and np.isnan(depth[~mask]).all()
     # a sphere: the centre is the highest point of the integrated surface
@@ -598,7 +598,7 @@ def test_depth_of_the_whole_surface_stage_is_written_as_is(tmp_path, capsys):
     # interreflection round that comes with it
     assert "whole-surface stage: kept" in out.out or "whole-surface stage: rejected" in out.out
     assert "interreflections: one bounce" in out.out
-    res = ps.HSHResult.load(tmp_path / "r" / "result.npz")
+    res = ps.HSHResult.read(tmp_path / "r" / "result.npz")
     depth = np.load(tmp_path / "r" / "depth.npy")
     m = res.mask.numpy()
     assert res.depth is not None and np.allclose(depth[m], res.depth.numpy()[m], rtol=1e-6)

@@ -211,14 +211,14 @@ def test_spherical_cap_lambertian_matches_funk_hecke():
     E = 2.5
     Yd = real_sh(d, N)
     lvec = torch.tensor([b[int(math.isqrt(k))] for k in range((N + 1) ** 2)], dtype=DT)
-    coeffs = (E * lvec * Yd).unsqueeze(0)  # a cap of power E: L_lm = E b_l Y_lm(d)
+    coefficients = (E * lvec * Yd).unsqueeze(0)  # a cap of power E: L_lm = E b_l Y_lm(d)
     a = torch.zeros(1, 4, dtype=DT)
     a[:, 0] = 2 * 0.6
     n = _normals(40, seed=5)
     A = _clamped_cosine_bands(N)
     cosg = (n @ d).numpy()
     ref = sum(E * 0.6 / math.pi * b[l] * A[l] * (2 * l + 1) / (4 * math.pi) * sp.eval_legendre(l, cosg) for l in range(N + 1))
-    np.testing.assert_allclose(render_envmap(n, a, coeffs)[:, 0].numpy(), ref, atol=1e-12)
+    np.testing.assert_allclose(render_envmap(n, a, coefficients)[:, 0].numpy(), ref, atol=1e-12)
 
 
 def test_bright_disc_matches_point_light_within_derived_tolerance():

@@ -167,7 +167,7 @@ def test_train_brdf_reaches_least_squares_optimum(tmp_path):
 
     mod = load_example("examples/train_brdf.py")
     gen = torch.Generator().manual_seed(saved["seed"])
-    target = BlinnPhong(kd=[0.60, 0.35, 0.20], ks=0.4, shininess=8.0)
+    target = BlinnPhong(albedo=[0.60, 0.35, 0.20], specular=0.4, shininess=8.0)
     wi, wo, f = mod.make_samples(target, saved["train_samples"], gen, torch.device("cpu"))
     c = torch_hsh.fit(wi.double(), wo.double(), f.double(), saved["order"])  # (C, K)
     with torch.no_grad():

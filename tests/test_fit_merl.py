@@ -82,7 +82,7 @@ def _direct_errors(t, a, weights=None, cutoff=None):
 
 
 def test_blinn_phong_matches_the_projection_of_the_model():
-    model = BlinnPhong(kd=0.3, ks=0.5, shininess=50.0)
+    model = BlinnPhong(albedo=0.3, specular=0.5, shininess=50.0)
     t = tabulate_merl(model, shape=SHAPE)
     a, info = fit_merl(t, 6, return_info=True)
     ref = torch_hsh.project(lambda wi, wo: model(wi, wo), 6, tol=1e-4)
@@ -105,7 +105,7 @@ def test_blinn_phong_matches_the_projection_of_the_model():
 
 @pytest.mark.parametrize("bad", ["uniform", "no_cos_theta_d"])
 def test_wrong_weights_fail_the_same_bound(bad):
-    model = BlinnPhong(kd=0.3, ks=0.5, shininess=50.0)
+    model = BlinnPhong(albedo=0.3, specular=0.5, shininess=50.0)
     t = tabulate_merl(model, shape=SHAPE)
     w = merl_solid_angle_weights(SHAPE)
     th, td, pd = merl_bin_centers(SHAPE)

@@ -21,7 +21,7 @@ def rand_dirs(n, seed, batch=()):
     return torch.nn.functional.normalize(d, dim=-1)
 
 
-def rand_coeffs(basis, P, seed, channels=None):
+def rand_coefficients(basis, P, seed, channels=None):
     g = torch.Generator().manual_seed(seed)
     K = get_basis(basis).num_functions(P)
     shape = (K,) if channels is None else (channels, K)
@@ -127,13 +127,13 @@ def test_lambertian_projection(basis, reduced):
     "basis,P,reduced", [(ISO, 3, None), (ISO, 2, False), (ANI, 2, None)]
 )
 def test_projection_recovers_bandlimited(basis, P, reduced):
-    a = rand_coeffs(basis, P, seed=1)
+    a = rand_coefficients(basis, P, seed=1)
     got = F.project(bandlimited(a, P, basis), P, basis, reduced=reduced)
     assert float((got - a).abs().max()) < 1e-12
 
 
 def test_projection_channels_chunking_float32():
-    a = rand_coeffs(ISO, 2, seed=2, channels=3)
+    a = rand_coefficients(ISO, 2, seed=2, channels=3)
     f = bandlimited(a, 2, ISO)
     got = F.project(f, 2, chunk_size=37)
     assert got.shape == (3, 10)
@@ -146,13 +146,13 @@ def test_projection_channels_chunking_float32():
 def test_default_rule_exact_up_to_3P_plus_1():
     # a function band-limited to L = 3P + 1 projects exactly onto order P ...
     P, L = 1, 4
-    a = rand_coeffs(ISO, L, seed=5)
+    a = rand_coefficients(ISO, L, seed=5)
     got = F.project(bandlimited(a, L, ISO), P)
     assert float((got - F.truncate(a, P)).abs().max()) < 1e-12
     # ... with the reduced and the full rule; the minimal exact rule for L = P is (P+1, 2P+1)
     got_full = F.project(bandlimited(a, L, ISO), P, reduced=False)
     assert float((got_full - F.truncate(a, P)).abs().max()) < 1e-12
-    b = rand_coeffs(ISO, 3, seed=6)
+    b = rand_coefficients(ISO, 3, seed=6)
     assert float((F.project(bandlimited(b, 3, ISO), 3, n_theta=4, n_phi=7) - b).abs().max()) < 1e-12
     # too few nodes is not exact (the rule is sharp enough to matter)
     assert float((F.project(bandlimited(b, 3, ISO), 3, n_theta=3, n_phi=7) - b).abs().max()) > 1e-6
@@ -160,7 +160,7 @@ def test_default_rule_exact_up_to_3P_plus_1():
 
 def test_anisotropic_brdf_on_isotropic_basis_needs_full_rule():
     P = 2
-    c = rand_coeffs(ANI, P, seed=7)
+    c = rand_coefficients(ANI, P, seed=7)
     f = bandlimited(c, P, ANI)
     full = F.project(f, P, ISO, reduced=False)
 
@@ -184,19 +184,19 @@ def test_anisotropic_brdf_on_isotropic_basis_needs_full_rule():
 
 def test_parseval_and_brdf_energy():
     for basis, P in ((ISO, 3), (ANI, 1)):
-        a = rand_coeffs(basis, P, seed=8)
+        a = rand_coefficients(basis, P, seed=8)
         e = F.brdf_energy(bandlimited(a, P, basis), P, basis)
         assert abs(float(e) - float((a * a).sum())) < 1e-11 * float(e)
     e = F.brdf_energy(lambert(0.5), 0)
     assert abs(float(e) - 0.25 / math.pi**2 * 4 * math.pi**2) < 1e-12
-    a = rand_coeffs(ISO, 1, seed=9, channels=2)
+    a = rand_coefficients(ISO, 1, seed=9, channels=2)
     e = F.brdf_energy(bandlimited(a, 1, ISO), 1)
     assert e.shape == (2,) and torch.allclose(e, (a * a).sum(-1), rtol=1e-12)
 
 
 def test_monte_carlo_projection_converges_and_is_seeded():
     P = 1
-    a = rand_coeffs(ISO, P, seed=10)
+    a = rand_coefficients(ISO, P, seed=10)
     f = bandlimited(a, P, ISO)
     errs = []
     for n in (500, 5000, 50000):
@@ -288,7 +288,7 @@ def test_normal_exitance_bad_inputs():
 
 # ----------------------------------------------------------------------------- reconstruct / truncate
 def test_reconstruct_shapes_channels_and_order_inference():
-    a = rand_coeffs(ISO, 2, seed=11)
+    a = rand_coefficients(ISO, 2, seed=11)
     wi, wo = rand_dirs(7, 1), rand_dirs(7, 2)
     ref = torch_hsh.helmholtz_isotropic(wi, wo, 2) @ a
     assert torch.allclose(F.reconstruct(a, wi, wo), ref, atol=1e-13)
@@ -313,7 +313,7 @@ def test_reconstruct_shapes_channels_and_order_inference():
 
 def test_truncate_matches_lower_order_basis():
     for basis, P in ((ISO, 3), (ANI, 2)):
-        a = rand_coeffs(basis, P, seed=12)
+        a = rand_coefficients(basis, P, seed=12)
         t = F.truncate(a, 1, basis)
         assert t.shape == (get_basis(basis).num_functions(1),)
         wi, wo = rand_dirs(9, 5), rand_dirs(9, 6)
@@ -321,7 +321,7 @@ def test_truncate_matches_lower_order_basis():
         v2 = F.reconstruct(F.truncate(a, 1, basis, zero_fill=True), wi, wo, P, basis)
         assert torch.allclose(v1, v2, atol=1e-12)
     with pytest.raises(ValueError, match="<="):
-        F.truncate(rand_coeffs(ISO, 1, 0), 2)
+        F.truncate(rand_coefficients(ISO, 1, 0), 2)
 
 
 # ----------------------------------------------------------------------------- energy accuracy
@@ -350,7 +350,7 @@ def test_energy_accuracy_rejects_energy_below_the_coefficients():
 
 
 def test_energy_accuracy_monotone_and_one_for_bandlimited():
-    a = rand_coeffs(ISO, 3, seed=13, channels=2)
+    a = rand_coefficients(ISO, 3, seed=13, channels=2)
     e = F.brdf_energy(bandlimited(a, 3, ISO), 3)
     acc = F.energy_accuracy(a, e)
     assert acc.shape == (2, 4)
@@ -365,7 +365,7 @@ def test_energy_accuracy_monotone_and_one_for_bandlimited():
 # ----------------------------------------------------------------------------- least squares
 def test_fit_recovers_bandlimited():
     for basis, P, N in ((ISO, 3, 300), (ANI, 2, 400)):
-        a = rand_coeffs(basis, P, seed=14)
+        a = rand_coefficients(basis, P, seed=14)
         wi, wo = rand_dirs(N, 20), rand_dirs(N, 21)
         y = F.reconstruct(a, wi, wo, P, basis)
         got, info = F.fit(wi, wo, y, P, basis, return_info=True)
@@ -376,7 +376,7 @@ def test_fit_recovers_bandlimited():
 
 def test_fit_noise_scaling_and_residual_rms():
     P, N = 2, 400
-    a = rand_coeffs(ISO, P, seed=15)
+    a = rand_coefficients(ISO, P, seed=15)
     wi, wo = rand_dirs(N, 30), rand_dirs(N, 31)
     y = F.reconstruct(a, wi, wo)
     noise = torch.randn(N, generator=torch.Generator().manual_seed(0), dtype=D)
@@ -392,7 +392,7 @@ def test_fit_noise_scaling_and_residual_rms():
 
 def test_fit_ridge_helps_when_underdetermined():
     # smooth truth (order 1), fitted at order 4 (35 functions) from 20 noisy samples
-    a = rand_coeffs(ISO, 1, seed=16)
+    a = rand_coefficients(ISO, 1, seed=16)
     wi, wo = rand_dirs(20, 40), rand_dirs(20, 41)
     y = F.reconstruct(a, wi, wo) + 0.01 * torch.randn(20, generator=torch.Generator().manual_seed(1), dtype=D)
     ti, to = rand_dirs(500, 42), rand_dirs(500, 43)
@@ -414,7 +414,7 @@ def test_fit_ridge_helps_when_underdetermined():
 def test_fit_batched_equals_individual():
     P, N, B, C = 2, 120, 3, 2
     wi, wo = rand_dirs(N, 50, (B,)), rand_dirs(N, 51, (B,))
-    a = torch.stack([rand_coeffs(ISO, P, 60 + k) for k in range(B)])
+    a = torch.stack([rand_coefficients(ISO, P, 60 + k) for k in range(B)])
     y = F.reconstruct(a[:, None], wi, wo) + 1e-3 * torch.randn(B, N, generator=torch.Generator().manual_seed(2), dtype=D)
     batched = F.fit(wi, wo, y, P)
     assert batched.shape == (B, 10)
@@ -441,7 +441,7 @@ def test_fit_batched_equals_individual():
 
 def test_fit_weights():
     P, N = 2, 100
-    a = rand_coeffs(ISO, P, seed=17)
+    a = rand_coefficients(ISO, P, seed=17)
     wi, wo = rand_dirs(N, 70), rand_dirs(N, 71)
     y = F.reconstruct(a, wi, wo)
     y_bad = y.clone()
@@ -472,7 +472,7 @@ def test_fit_weights():
 
 def test_fit_float32_promoted_to_float64():
     P, N = 3, 300
-    a = rand_coeffs(ISO, P, seed=18)
+    a = rand_coefficients(ISO, P, seed=18)
     wi, wo = rand_dirs(N, 80), rand_dirs(N, 81)
     y = F.reconstruct(a, wi, wo)
     got = F.fit(wi.float(), wo.float(), y.float(), P)
@@ -513,12 +513,12 @@ def _albedo_quadrature(a, wo, P, basis, channels=False):
 
 @pytest.mark.parametrize("basis,P", [(ISO, 4), (ANI, 2)])
 def test_directional_albedo_closed_form_vs_quadrature(basis, P):
-    a = rand_coeffs(basis, P, seed=19)
+    a = rand_coefficients(basis, P, seed=19)
     wo = rand_dirs(11, 100)
     closed = F.directional_albedo(a, wo, basis=basis)
     assert closed.shape == (11,)
     assert torch.allclose(closed, _albedo_quadrature(a, wo, P, basis), atol=1e-12)
-    ac = rand_coeffs(basis, P, seed=20, channels=3)
+    ac = rand_coefficients(basis, P, seed=20, channels=3)
     cc = F.directional_albedo(ac, wo, basis=basis, channels=True)
     assert cc.shape == (11, 3)
     assert torch.allclose(cc, _albedo_quadrature(ac, wo, P, basis, channels=True), atol=1e-12)
@@ -530,7 +530,7 @@ def test_directional_albedo_lambertian_generic_fallback_and_horizon():
     assert torch.allclose(F.directional_albedo(a, wo), torch.full((5,), 0.6, dtype=D), atol=1e-13)
     below = torch.tensor([[0.0, 0.6, -0.8]], dtype=D)
     assert float(F.directional_albedo(a, below).abs().max()) == 0.0
-    r = rand_coeffs(ISO, 3, seed=21)
+    r = rand_coefficients(ISO, 3, seed=21)
     generic = F.directional_albedo(r, wo, basis=_Wrapped(ISO))  # quadrature path
     assert torch.allclose(generic, F.directional_albedo(r, wo), atol=1e-12)
 

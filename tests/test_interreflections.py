@@ -99,8 +99,8 @@ def test_stride_approximates_the_full_sum_and_bad_arguments_are_named():
         one_bounce(img[0], n, z, m, alb)
     with pytest.raises(ValueError, match="`stride`"):
         one_bounce(img, n, z, m, alb, radius=4, stride=5)
-    with pytest.raises(ValueError, match="`light_chunk`"):
-        one_bounce(img, n, z, m, alb, light_chunk=0)
+    with pytest.raises(ValueError, match="`chunk_size`"):
+        one_bounce(img, n, z, m, alb, chunk_size=0)
     with pytest.raises(ValueError, match="`radius`"):
         one_bounce(img, n, z, m, alb, radius=65)
     with pytest.raises(ValueError, match="`interreflections`"):

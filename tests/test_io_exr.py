@@ -142,17 +142,17 @@ def test_normal_map(tmp_path):
 
 def test_coefficient_maps_roundtrip_exact(tmp_path):
     k = 12
-    coeffs = torch.randn(H, W, 3, k, dtype=torch.float64) * 1e3
+    coefficients = torch.randn(H, W, 3, k, dtype=torch.float64) * 1e3
     names = [f"a_{p}_{r}_{q}" for p, r, q in [(0, 0, 0), (1, 0, 0), (1, 1, 0), (1, 1, 1)]] + [f"z{i}" for i in range(8)]
     names = names[::-1]  # not alphabetical: order must come from the header
-    write_coefficient_maps_exr(tmp_path / "c.exr", coeffs, names=names)
+    write_coefficient_maps_exr(tmp_path / "c.exr", coefficients, names=names)
     ch = read_exr(tmp_path / "c.exr")
     assert "R.a_1_1_0" in ch and "B.z7" in ch and len(ch) == 3 * k
     back, got_names, colors = read_coefficient_maps_exr(tmp_path / "c.exr")
     assert got_names == names and colors == ["R", "G", "B"]
     assert back.dtype == np.float32 and back.shape == (H, W, 3, k)
-    np.testing.assert_array_equal(back, coeffs.float().numpy())
-    np.testing.assert_array_equal(ch["G.a_1_0_0"], coeffs[:, :, 1, names.index("a_1_0_0")].float().numpy())
+    np.testing.assert_array_equal(back, coefficients.float().numpy())
+    np.testing.assert_array_equal(ch["G.a_1_0_0"], coefficients[:, :, 1, names.index("a_1_0_0")].float().numpy())
     # default names, single channel from (H, W, K)
     mono = np.random.default_rng(0).random((H, W, 4)).astype(np.float32)
     write_coefficient_maps_exr(tmp_path / "m.exr", mono)

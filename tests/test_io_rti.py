@@ -26,7 +26,7 @@ def _scene(size=20, n=10, seed=0):
     normals, mask = scenes.sphere_normals(size, radius=0.9, dtype=torch.float64)
     lights = scenes.diligent_like_lights(n, seed=seed, dtype=torch.float64)
     ones = torch.ones(size, size, 1, dtype=torch.float64)
-    model = BlinnPhong(kd=0.6 * ones.expand(-1, -1, 3), ks=0.2 * ones, shininess=20.0 * ones)
+    model = BlinnPhong(albedo=0.6 * ones.expand(-1, -1, 3), specular=0.2 * ones, shininess=20.0 * ones)
     imgs = render(normals, lights, model) * mask[None, ..., None]
     return imgs, lights, mask, normals
 
@@ -102,7 +102,7 @@ def test_save_load_roundtrip_srgb(tmp_path, fmt):
 
 def test_linear_write_and_read(tmp_path):
     imgs, lights, mask, _ = _scene()
-    save_rti(tmp_path / "cap", imgs, lights, mask=mask, encode_srgb=False)
+    save_rti(tmp_path / "cap", imgs, lights, mask=mask, linear=True)
     d = load_rti(tmp_path / "cap", linear=True, dtype=torch.float64)
     assert float((d.images - imgs / imgs.max()).abs().max()) <= 0.5 / 255 + 1e-9
 

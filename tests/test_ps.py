@@ -134,7 +134,7 @@ def test_directional_albedo_matches_quadrature():
 
 def test_holdout_mode_reports_relighting_error():
     n, l = _scene(30, 30, 4)
-    model = BlinnPhong(kd=torch.full((30, 3), 0.5, dtype=DT), ks=torch.full((30, 1), 0.4, dtype=DT),
+    model = BlinnPhong(albedo=torch.full((30, 3), 0.5, dtype=DT), specular=torch.full((30, 1), 0.4, dtype=DT),
                        shininess=torch.full((30, 1), 8.0, dtype=DT))
     img = render(n, l, model)
     ho = ps.holdout_evaluation(img, l, holdout=6, seed=1, max_iter=8)
@@ -554,8 +554,8 @@ def test_settings_are_checked_from_their_fields_and_solve_hsh_takes_them():
     assert torch.equal(a.normals, b.normals) and torch.equal(a.coefficients, b.coefficients)
 
 
-def test_old_result_path_of_holdout_evaluation_warns_and_forwards():
+def test_holdout_evaluation_has_one_path():
     from torch_hsh.ps import result
 
-    with pytest.warns(DeprecationWarning, match="torch_hsh.ps.holdout_evaluation"):
-        assert result.holdout_evaluation is ps.holdout_evaluation
+    assert not hasattr(result, "holdout_evaluation")  # one name per thing: torch_hsh.ps.holdout_evaluation
+    assert not hasattr(ps, "hsh")  # the solver is torch_hsh.ps.solve_hsh

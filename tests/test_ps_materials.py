@@ -25,7 +25,7 @@ def _materials_scene(n_materials, p=180, l=30, seed=0, noise=1e-3):
     one = torch.ones(p, 1, dtype=DT)
     shapes = [
         Lambertian(one),
-        BlinnPhong(kd=one, ks=0.4 * one, shininess=8.0 * one),
+        BlinnPhong(albedo=one, specular=0.4 * one, shininess=8.0 * one),
         CookTorranceGGX(albedo=0.3 * one, specular=one, roughness=0.5 * one, f0=0.9),
     ]
     tint = torch.tensor([[1.0, 0.8, 0.6], [0.5, 0.7, 1.0], [0.9, 0.4, 0.9]], dtype=DT)  # distinct colours

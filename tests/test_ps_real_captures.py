@@ -262,22 +262,22 @@ def test_result_save_and_load_round_trip(tmp_path):
     img, l, _ = _scene(p=48, l=16, seed=12)
     r = ps.solve_hsh(img.reshape(16, 6, 8, 3), l, **FAST)
     f = tmp_path / "res.npz"
-    r.save(f)
+    r.write(f)
     with pytest.raises(FileExistsError):
-        r.save(f)
-    q = ps.HSHResult.load(f)
+        r.write(f)
+    q = ps.HSHResult.read(f)
     for name in ("normals", "coefficients", "albedo", "residual", "mask", "lights", "confidence", "basis_brdfs",
                  "mixing"):
         assert torch.equal(getattr(q, name), getattr(r, name)), name
     assert q.order == r.order and q.weights.shape == (6, 8, 0)
     assert q.info["materials"] == r.info["materials"]
-    r.save(f, weights=True, overwrite=True)
-    assert torch.equal(ps.HSHResult.load(f).weights, r.weights)
+    r.write(f, weights=True, overwrite=True)
+    assert torch.equal(ps.HSHResult.read(f).weights, r.weights)
     assert torch.allclose(q.relight(l[:2]), r.relight(l[:2]))
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
-        ps.HSHResult.load(bad)
+        ps.HSHResult.read(bad)
     # other files of a result folder, and a truncated archive: a ValueError that names the file, never numpy's
     # TypeError of a .npy under `with` or its advice to load pickled data unsafely
     import numpy as np
@@ -287,7 +287,7 @@ def test_result_save_and_load_round_trip(tmp_path):
     (tmp_path / "cut.npz").write_bytes(f.read_bytes()[:200])
     for name in ("normals.npy", "metrics.json", "cut.npz"):
         with pytest.raises(ValueError, match=rf"{name}: not a saved HSHResult") as e:
-            ps.HSHResult.load(tmp_path / name)
+            ps.HSHResult.read(tmp_path / name)
         assert "allow_pickle" not in str(e.value)
 
 

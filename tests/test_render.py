@@ -106,13 +106,8 @@ def test_render_noise_names_match_add_sensor_noise():
     clean = R.render(n, l, a)
     got = R.render(n, l, a, read_std=0.01, shot_gain=0.002, seed=5)
     assert torch.equal(got, R.add_sensor_noise(clean, read_std=0.01, shot_gain=0.002, seed=5))
-    with pytest.warns(DeprecationWarning) as rec:
-        old = R.render(n, l, a, read_noise=0.01, shot_noise=0.002, seed=5)
-    assert sorted(str(r.message).split("`")[1] for r in rec) == ["read_noise", "shot_noise"]
-    assert torch.equal(old, got)  # the earlier names still work
-    with pytest.raises(TypeError, match="read_std"):
-        R.render(n, l, a, read_std=0.01, read_noise=0.01)
-    assert R.order_from_num_functions is R.order_from_num_functions
+    with pytest.raises(TypeError, match="read_noise"):  # one name per thing: the old names are gone
+        R.render(n, l, a, read_noise=0.01)
 
 
 def test_quantize_and_saturation():

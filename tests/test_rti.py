@@ -108,8 +108,8 @@ def read_relight(folder):
     return np.stack(planes, axis=-1), scale.reshape(9, 3).T
 
 
-def viewer_relight(coeffs, light, theta_max):
-    return coeffs @ viewer_weights(light, coeffs.shape[-1], theta_max)
+def viewer_relight(coefficients, light, theta_max):
+    return coefficients @ viewer_weights(light, coefficients.shape[-1], theta_max)
 
 
 # --------------------------------------------------------------------------- #
@@ -273,7 +273,7 @@ def material_scene(size=24):
 
     n, m = scenes.sphere_normals(size, radius=0.9, dtype=torch.float64)
     one = torch.ones(1, dtype=torch.float64)
-    spec = project(BlinnPhong(kd=0 * one, ks=one, shininess=20 * one), order=4, n_theta=24, n_phi=48)[0]
+    spec = project(BlinnPhong(albedo=0 * one, specular=one, shininess=20 * one), order=4, n_theta=24, n_phi=48)[0]
     K = spec.shape[0]
     albedo = 0.2 + 0.6 * scenes.albedo_texture(size, seed=0, dtype=torch.float64)  # (H, W, 3)
     a = torch.zeros(size, size, 3, K, dtype=torch.float64)
@@ -349,6 +349,8 @@ def test_projection_error_and_plain_fit_on_held_out_lights():
     assert all(e[1] < e[0] and e[2] < 0.1 for e in err.values()), err
     with pytest.raises(ValueError, match="max_angle_deg"):
         project_to_rti(n, a, 9, max_angle_deg=95)
+    with pytest.raises(TypeError, match="`linear` must be a bool"):
+        project_to_rti(n, a, 9, linear="srgb")
 
 
 def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):

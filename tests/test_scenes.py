@@ -397,7 +397,7 @@ def test_demo_scene_normals_match_height_field():
 
 
 def test_demo_scene_cast_shadows_and_noise(demo32):
-    clean = demo_scene(32, seed=0, dtype=torch.float64, read_noise=0.0, shot_noise=0.0)
+    clean = demo_scene(32, seed=0, dtype=torch.float64, relative_read_std=0.0, relative_shot_gain=0.0)
     s, m = demo32, demo32["mask"]
     assert torch.equal(clean["visibility"], s["visibility"]) and torch.equal(clean["normals_gt"], s["normals_gt"])
     ndl = torch.einsum("hwc,lc->lhw", s["normals_gt"], s["lights"])
@@ -455,7 +455,7 @@ def test_demo_scene_errors():
         demo_scene(16, dtype=torch.int32)
     with pytest.raises(ValueError, match="min_nz"):
         demo_scene(16, min_nz=1.0)
-    with pytest.raises(ValueError, match="read_noise"):
-        demo_scene(16, read_noise=-1.0)
+    with pytest.raises(ValueError, match="relative_read_std"):
+        demo_scene(16, relative_read_std=-1.0)
     with pytest.raises(ValueError, match="bits"):
         demo_scene(16, bits=40)

@@ -52,24 +52,33 @@ def test_mirror_values():
     for (p, r, q), v in zip(idx.tolist(), iso.tolist()):
         exp = 0.0 if p != r else (1.0 if q == 0 else math.sqrt(2) * (-1) ** q)
         assert v == pytest.approx(exp, abs=1e-15)
-    an = mirror_spectrum(2, isotropic=False)
+    an = mirror_spectrum(2, basis="helmholtz_anisotropic")
     for (p, q, r, s), v in zip(torch_hsh.anisotropic_indices(2).tolist(), an.tolist()):
         assert v == pytest.approx((-1) ** q if (p == r and q == s) else 0.0, abs=1e-15)
     # the printed Eq. (37) values are exactly half
     assert torch.allclose(mirror_spectrum_printed(3), iso / 2)
-    assert torch.allclose(mirror_spectrum_printed(2, isotropic=False), an / 2)
+    assert torch.allclose(mirror_spectrum_printed(2, basis="helmholtz_anisotropic"), an / 2)
     assert mirror_spectrum(2, dtype=torch.float32).dtype == torch.float32
+    assert torch.equal(mirror_spectrum(2, get_basis("helmholtz_anisotropic")), an)
 
 
-@pytest.mark.parametrize("isotropic,P", [(True, 4), (False, 2)])
-def test_mirror_equals_delta_integral(isotropic, P):
+@pytest.mark.parametrize("bad", [True, False, "isotropic", "gautron_hsh", None])
+def test_mirror_spectrum_basis_is_a_helmholtz_name(bad):
+    with pytest.raises(ValueError, match="`basis` must be 'helmholtz_isotropic' or 'helmholtz_anisotropic'"):
+        mirror_spectrum(2, bad)
+    with pytest.raises(ValueError, match="`basis`"):
+        mirror_spectrum_printed(2, basis=bad)
+
+
+@pytest.mark.parametrize("basis,P", [("helmholtz_isotropic", 4), ("helmholtz_anisotropic", 2)])
+def test_mirror_equals_delta_integral(basis, P):
     # a_k = int_{Omega} B_k(w, R w) dw for f = delta(theta_i - theta_o) delta(phi_i - phi_o + pi) / sin(theta_i)
     d, w = Q.direction_quadrature(P + 2, 4 * P + 2)
     Rd = d * torch.tensor([-1.0, -1.0, 1.0], dtype=D)
-    B = (torch_hsh.helmholtz_isotropic if isotropic else torch_hsh.helmholtz_anisotropic)(d, Rd, P)
+    B = getattr(torch_hsh, basis)(d, Rd, P)
     num = (B * w[:, None]).sum(0)
-    assert float((num - mirror_spectrum(P, isotropic)).abs().max()) < 1e-12
-    assert float((num - mirror_spectrum_printed(P, isotropic)).abs().max()) > 0.4
+    assert float((num - mirror_spectrum(P, basis)).abs().max()) < 1e-12
+    assert float((num - mirror_spectrum_printed(P, basis)).abs().max()) > 0.4
 
 
 def test_mirror_limit_of_narrowing_lobe():

@@ -7,7 +7,7 @@ import torch
 
 from torch_hsh.io import read_exr
 from torch_hsh.render.scenes import sphere_normals
-from torch_hsh.surface import depth_to_mesh, integrate_normals, save_depth, save_mesh, shade_depth
+from torch_hsh.surface import depth_to_mesh, integrate_normals, write_depth, write_mesh, shade_depth
 
 
 def _sphere(size=24):
@@ -16,9 +16,9 @@ def _sphere(size=24):
 
 
 @pytest.mark.parametrize("suffix", [".npy", ".exr"])
-def test_save_depth_round_trip(tmp_path, suffix):
+def test_write_depth_round_trip(tmp_path, suffix):
     z, _, m = _sphere()
-    p = save_depth(tmp_path / f"depth{suffix}", z, m)
+    p = write_depth(tmp_path / f"depth{suffix}", z, m)
     if suffix == ".npy":
         back = np.load(p)
         assert back.dtype == np.float64
@@ -30,10 +30,10 @@ def test_save_depth_round_trip(tmp_path, suffix):
         np.testing.assert_array_equal(ch["mask"], m.numpy().astype(np.float32))
     assert np.isnan(back[~m.numpy()]).all()
     with pytest.raises(FileExistsError):
-        save_depth(p, z, m)
-    save_depth(p, z, m, overwrite=True)
+        write_depth(p, z, m)
+    write_depth(p, z, m, overwrite=True)
     with pytest.raises(ValueError, match="npy"):
-        save_depth(tmp_path / "depth.png", z, m)
+        write_depth(tmp_path / "depth.png", z, m)
 
 
 def test_mesh_topology_and_orientation():
@@ -78,11 +78,11 @@ def test_mesh_geometry_normals_colours():
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".obj"])
-def test_save_mesh_round_trip(tmp_path, suffix):
+def test_write_mesh_round_trip(tmp_path, suffix):
     trimesh = pytest.importorskip("trimesh")
     z, n, m = _sphere()
     albedo = torch.full((24, 24), 0.25, dtype=torch.float64)
-    p = save_mesh(tmp_path / f"s{suffix}", z, m, n, albedo)
+    p = write_mesh(tmp_path / f"s{suffix}", z, m, n, albedo)
     ref = depth_to_mesh(z, m, n, albedo)
     back = trimesh.load(p, process=False)
     assert back.faces.shape == ref.faces.shape
@@ -90,9 +90,9 @@ def test_save_mesh_round_trip(tmp_path, suffix):
     np.testing.assert_allclose(back.vertex_normals, ref.vertex_normals, atol=1e-6)
     np.testing.assert_array_equal(back.visual.vertex_colors, ref.visual.vertex_colors)
     with pytest.raises(FileExistsError):
-        save_mesh(p, z, m)
+        write_mesh(p, z, m)
     with pytest.raises(ValueError, match="ply"):
-        save_mesh(tmp_path / "s.stl", z, m)
+        write_mesh(tmp_path / "s.stl", z, m)
 
 
 def test_missing_trimesh_gives_install_hint(monkeypatch):
@@ -106,22 +106,22 @@ def test_shade_depth_values():
     z = torch.zeros(6, 8, dtype=torch.float64)
     m = torch.ones(6, 8, dtype=torch.bool)
     m[0] = False
-    img = shade_depth(z, m, light=(0.6, 0.0, 0.8), ambient=0.2, srgb=False, background=0.5)
+    img = shade_depth(z, m, light=(0.6, 0.0, 0.8), ambient=0.2, linear=True, background=0.5)
     assert torch.allclose(img[m], torch.tensor(0.2 + 0.8 * 0.8, dtype=torch.float64))
     assert bool((img[~m] == 0.5).all())
     # a ramp rising to the right faces left: lit from the left, darker from the right
     ramp = torch.arange(8.0, dtype=torch.float64)[None].expand(6, 8) * 0.5
-    left = shade_depth(ramp, light=(-0.6, 0.0, 0.8), ambient=0.0, srgb=False)
-    right = shade_depth(ramp, light=(0.6, 0.0, 0.8), ambient=0.0, srgb=False)
+    left = shade_depth(ramp, light=(-0.6, 0.0, 0.8), ambient=0.0, linear=True)
+    right = shade_depth(ramp, light=(0.6, 0.0, 0.8), ambient=0.0, linear=True)
     assert bool((left > right).all())
-    colour = shade_depth(z, m, albedo=torch.tensor([1.0, 0.5, 0.0]).expand(6, 8, 3).double(), srgb=False, light=(0, 0, 1))
+    colour = shade_depth(z, m, albedo=torch.tensor([1.0, 0.5, 0.0]).expand(6, 8, 3).double(), linear=True, light=(0, 0, 1))
     assert colour.shape == (6, 8, 3) and torch.allclose(colour[3, 3], torch.tensor([1.0, 0.5, 0.0]).double())
     enc = shade_depth(z, m, light=(0.6, 0.0, 0.8), ambient=0.2)
     assert torch.allclose(enc[m], torch.tensor(1.055 * 0.84 ** (1 / 2.4) - 0.055, dtype=torch.float64))
     # cast shadows: a wall darkens its foot
     wall = torch.zeros(10, 30, dtype=torch.float64)
     wall[:, 20:] = 10.0
-    sh = shade_depth(wall, light=(0.6, 0.0, 0.8), ambient=0.1, shadows=True, srgb=False)
+    sh = shade_depth(wall, light=(0.6, 0.0, 0.8), ambient=0.1, shadows=True, linear=True)
     assert torch.allclose(sh[5, 15], torch.tensor(0.1, dtype=torch.float64)) and float(sh[5, 2]) > 0.8
     with pytest.raises(ValueError, match="light"):
         shade_depth(z, m, light=(0.0, 0.0, 0.0))

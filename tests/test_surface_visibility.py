@@ -46,9 +46,9 @@ def test_only_the_mask_occludes_and_nan_outside():
 def test_matches_cast_shadow_mask_and_chunking():
     hgt = bumpy_heightfield(40, n_bumps=8, seed=1, dtype=torch.float64)
     lights = diligent_like_lights(20, dtype=torch.float64, max_polar_deg=70.0)
-    full = light_visibility(hgt, torch.ones(40, 40, dtype=torch.bool), lights, chunk=3)
+    full = light_visibility(hgt, torch.ones(40, 40, dtype=torch.bool), lights, chunk_size=3)
     assert torch.equal(full, cast_shadow_mask(hgt, lights))
-    assert torch.equal(full, light_visibility(hgt, None, lights, chunk=100))
+    assert torch.equal(full, light_visibility(hgt, None, lights, chunk_size=100))
     assert int((~full).sum()) > 100  # the test scene does have cast shadows
     fewer = light_visibility(hgt, None, lights, bias=0.5)
     assert bool((fewer | ~full).all()) and int((~fewer).sum()) < int((~full).sum())
@@ -63,7 +63,7 @@ def test_below_horizon_and_errors():
     with pytest.raises(ValueError, match="lights"):
         light_visibility(z, m, torch.tensor([0.0, 0.0, 1.0]))
     with pytest.raises(ValueError, match="chunk"):
-        light_visibility(z, m, torch.tensor([[0.0, 0.0, 1.0]]), chunk=0)
+        light_visibility(z, m, torch.tensor([[0.0, 0.0, 1.0]]), chunk_size=0)
     with pytest.raises(ValueError, match="bias"):
         light_visibility(z, m, torch.tensor([[0.0, 0.0, 1.0]]), bias=-0.1)
     bad = z.clone()

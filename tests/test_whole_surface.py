@@ -150,8 +150,8 @@ def test_solve_hsh_runs_the_stage_and_the_result_keeps_the_depth(demo, tmp_path)
         assert k in out.info and math.isfinite(out.info[k])
     assert out.info["surface_rounds"] == 1.0
     assert out.info["interreflection_rounds"] in (0.0, 1.0)  # one safeguarded round comes with the stage
-    out.save(tmp_path / "r.npz")
-    back = ps.HSHResult.load(tmp_path / "r.npz")
+    out.write(tmp_path / "r.npz")
+    back = ps.HSHResult.read(tmp_path / "r.npz")
     assert torch.equal(back.depth.isnan(), out.depth.isnan())
     assert torch.equal(back.depth[s["mask"]], out.depth[s["mask"]])
     assert res.depth is None  # off by default

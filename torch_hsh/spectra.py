@@ -91,8 +91,20 @@ def lambertian_spectrum(
     return rho.unsqueeze(-1) * unit
 
 
-def _mirror(order: int, isotropic: bool, scale: float, dtype, device) -> torch.Tensor:
-    if isotropic:
+_HELMHOLTZ = ("helmholtz_isotropic", "helmholtz_anisotropic")
+
+
+def _is_isotropic(basis) -> bool:
+    """True for the isotropic Helmholtz basis, False for the anisotropic one; ``ValueError`` otherwise."""
+    if isinstance(basis, (HelmholtzIsotropic, HelmholtzAnisotropic)):
+        return isinstance(basis, HelmholtzIsotropic)
+    if isinstance(basis, str) and basis in _HELMHOLTZ:
+        return basis == "helmholtz_isotropic"
+    raise ValueError(f"`basis` must be 'helmholtz_isotropic' or 'helmholtz_anisotropic', got {basis!r}")
+
+
+def _mirror(order: int, basis, scale: float, dtype, device) -> torch.Tensor:
+    if _is_isotropic(basis):
         P = check_order(order)
         idx = _hb.isotropic_indices(P)
         p, r, q = idx.unbind(-1)
@@ -110,15 +122,15 @@ def _mirror(order: int, isotropic: bool, scale: float, dtype, device) -> torch.T
 
 def mirror_spectrum(
     order: int,
-    isotropic: bool = True,
+    basis: Union[str, Basis] = "helmholtz_isotropic",
     dtype: torch.dtype = torch.float64,
     device: Optional[torch.device] = None,
 ) -> torch.Tensor:
     r"""Spectrum of the ideal mirror (Eq. 28) with **erratum 2** applied.
 
-    * ``isotropic=True`` (``helmholtz_isotropic`` columns): ``p = r`` only,
+    * ``basis="helmholtz_isotropic"``: ``p = r`` only,
       1 for ``q = 0`` and :math:`\sqrt2(-1)^q` for ``q > 0``.
-    * ``isotropic=False`` (``helmholtz_anisotropic`` columns): :math:`(-1)^q` for
+    * ``basis="helmholtz_anisotropic"``: :math:`(-1)^q` for
       ``p = r`` and ``q = s``, 0 otherwise.
 
     The mirror is not square-integrable (its energy is infinite), so the
@@ -126,7 +138,8 @@ def mirror_spectrum(
 
     Args:
         order: truncation order ``P``.
-        isotropic: which Helmholtz basis.
+        basis: which Helmholtz basis, ``"helmholtz_isotropic"`` (default) or
+            ``"helmholtz_anisotropic"`` (or the basis object); any other value raises ``ValueError``.
         dtype, device: of the result.
 
     Returns:
@@ -136,19 +149,19 @@ def mirror_spectrum(
         >>> [round(float(x), 6) for x in mirror_spectrum(1)]
         [1.0, 0.0, 1.0, -1.414214]
     """
-    return _mirror(order, isotropic, 1.0, dtype, device)
+    return _mirror(order, basis, 1.0, dtype, device)
 
 
 def mirror_spectrum_printed(
     order: int,
-    isotropic: bool = True,
+    basis: Union[str, Basis] = "helmholtz_isotropic",
     dtype: torch.dtype = torch.float64,
     device: Optional[torch.device] = None,
 ) -> torch.Tensor:
     r"""**The paper's printed (wrong) mirror spectrum**, for documentation and tests only.
 
     Eq. (37) prints :math:`(-1)^q/2\,\delta_{pr}\delta_{qs}` for the anisotropic
-    basis, half of the correct value (erratum 2). For ``isotropic=True`` this
+    basis, half of the correct value (erratum 2). For ``basis="helmholtz_isotropic"`` this
     returns what Eq. (37) implies for the isotropic basis through
     :math:`(a^{qq} + a^{-q,-q})/\sqrt2`: 1/2 for ``q = 0`` and
     :math:`(-1)^q/\sqrt2` for ``q > 0`` (also half the correct values). Use
@@ -158,4 +171,4 @@ def mirror_spectrum_printed(
         >>> mirror_spectrum_printed(0).tolist()
         [0.5]
     """
-    return _mirror(order, isotropic, 0.5, dtype, device)
+    return _mirror(order, basis, 0.5, dtype, device)

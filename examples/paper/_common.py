@@ -195,11 +195,11 @@ def project_values(basis_name: str, order: int, wi, wo, w, F: torch.Tensor, chun
     return acc
 
 
-def accuracy_from_coeffs(basis_name: str, coeffs: torch.Tensor, energy: torch.Tensor) -> torch.Tensor:
+def accuracy_from_coefficients(basis_name: str, coefficients: torch.Tensor, energy: torch.Tensor) -> torch.Tensor:
     """Acc(P') for P' = 0..P, ``(n_materials, P+1)`` via :func:`torch_hsh.fitting.energy_accuracy`."""
     from torch_hsh.fitting import energy_accuracy
 
-    return energy_accuracy(coeffs, energy, basis=basis_name)
+    return energy_accuracy(coefficients, energy, basis=basis_name)
 
 
 def per_direction_table(kind: str, d: torch.Tensor, order: int) -> Tuple[torch.Tensor, Tuple[int, ...]]:

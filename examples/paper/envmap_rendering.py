@@ -112,14 +112,14 @@ def sphere(size: int):
     return n[mask], mask
 
 
-def basis_callable(name: str, coeffs: torch.Tensor, order: int):
-    """``f(wi, wo) -> (..., C)`` of a fitted expansion ``coeffs (C, K)`` in basis ``name``."""
+def basis_callable(name: str, coefficients: torch.Tensor, order: int):
+    """``f(wi, wo) -> (..., C)`` of a fitted expansion ``coefficients (C, K)`` in basis ``name``."""
     b = get_basis(name)
 
     def f(wi, wo):
         lead = wi.shape[:-1]
         B = b.evaluate(wi.reshape(-1, 3), wo.reshape(-1, 3), order)
-        return (B @ coeffs.T).reshape(*lead, coeffs.shape[0])
+        return (B @ coefficients.T).reshape(*lead, coefficients.shape[0])
 
     return f
 
@@ -194,7 +194,7 @@ def main(argv=None):
         imgs = {"helmholtz_isotropic": render_envmap(n, fits[key, "helmholtz_isotropic"], Lc)}
         h_ref = render_envmap_reference(n, fits[key, "helmholtz_isotropic"], bl_env)
         for b in BASES[1:]:
-            imgs[b] = render_envmap_reference(n, basis_callable(b, fits[key, b], P), bl_env, chunk_elements=2 ** 23)
+            imgs[b] = render_envmap_reference(n, basis_callable(b, fits[key, b], P), bl_env, chunk_size=2 ** 23)
         scale = float(gt.max())
         mae = {b: float((imgs[b].clamp(min=0) / scale - gt / scale).abs().mean()) for b in BASES}
         qcheck = float((h_ref - imgs["helmholtz_isotropic"]).abs().mean()) / scale

@@ -57,18 +57,18 @@ def numeric_mirror_spectrum(basis_name: str, order: int, n: int = 64) -> torch.T
 
 def closed_form(basis_name: str, order: int) -> torch.Tensor:
     if basis_name == "helmholtz_isotropic":
-        return mirror_spectrum(order, isotropic=True)
+        return mirror_spectrum(order, basis="helmholtz_isotropic")
     return zernike_mirror_coefficients(order)
 
 
-def lobe(basis_name: str, coeffs: torch.Tensor, order: int, theta_i: float, t: torch.Tensor) -> torch.Tensor:
+def lobe(basis_name: str, coefficients: torch.Tensor, order: int, theta_i: float, t: torch.Tensor) -> torch.Tensor:
     b = get_basis(basis_name)
     keep = b.function_orders(order) <= order
     wi = torch.tensor([[math.sin(theta_i), 0.0, math.cos(theta_i)]], dtype=torch.float64)
     # positive t on the mirror side (azimuth pi)
     wo = torch.stack([-torch.sin(t), torch.zeros_like(t), torch.cos(t)], -1)
     B = b.evaluate(wi.expand_as(wo), wo, order)[:, keep]
-    return B @ coeffs[: int(keep.sum())]
+    return B @ coefficients[: int(keep.sum())]
 
 
 def stats(t, f):
@@ -120,7 +120,7 @@ def main(argv=None):
              args.tables / "mirror_lobes.csv"]
     C.prepare_outputs(files, args.overwrite)
     Pmax = max(max(args.orders), args.order_angles)
-    coeffs = {}
+    coefficients = {}
     for bn in BASES:
         num = numeric_mirror_spectrum(bn, Pmax)
         cf = closed_form(bn, Pmax)
@@ -128,14 +128,14 @@ def main(argv=None):
         print(f"{bn}: numerical vs closed-form mirror spectrum, max |diff| = {err:.2e}")
         if err > 1e-10:
             raise SystemExit(f"mirror spectrum mismatch for {bn}: {err}")
-        coeffs[bn] = cf
+        coefficients[bn] = cf
     t = torch.linspace(-math.pi / 2, math.pi / 2, 721, dtype=torch.float64)
     rows = []
     th = math.radians(45.0)
     fig, axes = plt.subplots(2, len(args.orders), subplot_kw={"projection": "polar"}, figsize=(3 * len(args.orders), 4.6))
     for r, bn in enumerate(BASES):
         for c, P in enumerate(tqdm(args.orders, desc=bn)):
-            f = lobe(bn, coeffs[bn], P, th, t)
+            f = lobe(bn, coefficients[bn], P, th, t)
             ax = axes[r, c]
             setup(ax, th)
             polar(ax, t, f, "C0" if r == 0 else "C3", BASES[bn])
@@ -156,7 +156,7 @@ def main(argv=None):
         ax.set_yticklabels([])
         for k, a in enumerate(args.angles):
             tha = math.radians(a)
-            f = lobe(bn, coeffs[bn], args.order_angles, tha, t)
+            f = lobe(bn, coefficients[bn], args.order_angles, tha, t)
             polar(ax, t, f, f"C{k}", f"{a:g} deg")
             ax.plot([tha, tha], [0, 1.05], "--", color=f"C{k}", lw=0.8)
             rows.append([bn, args.order_angles, a, *stats(t, f)])

@@ -172,7 +172,7 @@ def test_objective_floor_solution_loss():
     slopes = torch.randn(P, 2, generator=g, dtype=torch.float64) * 0.4
     n = torch.nn.functional.normalize(torch.cat([slopes, torch.ones(P, 1, dtype=torch.float64)], -1), dim=-1)
     obs, B = _rendered(g, n, 24, order)
-    at_truth = solution_loss(obs, B, n, 0.05, order, 2.385, chunk=16)
+    at_truth = solution_loss(obs, B, n, 0.05, order, 2.385, chunk_size=16)
     # only the tiny ridge of the mixing-weight solve (1e-4 of the Gram diagonal) leaves a residual
     assert at_truth.shape == (P,) and float(at_truth.max()) < 1e-3
     tilted = torch.nn.functional.normalize(n + torch.tensor([0.25, 0.0, 0.0], dtype=torch.float64), dim=-1)

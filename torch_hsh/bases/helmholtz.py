@@ -1,5 +1,4 @@
-"""The Helmholtz HSH-based bases (ours), registered as ``helmholtz_isotropic``
-(alias ``helmholtz_hsh``) and ``helmholtz_anisotropic``."""
+"""The Helmholtz HSH-based bases (ours), registered as ``helmholtz_isotropic`` and ``helmholtz_anisotropic``."""
 from __future__ import annotations
 
 import math
@@ -16,7 +15,7 @@ __all__ = ["HelmholtzIsotropic", "HelmholtzAnisotropic", "COS_MOMENTS", "albedo_
 
 
 class _Helmholtz(DegreeBasis):
-    """What the two Helmholtz bases share: reciprocal, on the hemispheres, registered under several names, and
+    """What the two Helmholtz bases share: reciprocal, on the hemispheres, registered by name, and
     evaluated by the kernel function ``_evaluate`` with ``_count(order)`` columns."""
 
     reciprocal = True
@@ -119,5 +118,4 @@ def albedo_terms(order: int, isotropic: bool) -> Tuple[AlbedoTerm, ...]:
 
 
 register_basis(HelmholtzIsotropic("helmholtz_isotropic"))
-register_basis(HelmholtzIsotropic("helmholtz_hsh"))
 register_basis(HelmholtzAnisotropic("helmholtz_anisotropic"))

@@ -74,7 +74,7 @@ def zernike_indices(order: int) -> torch.Tensor:
 
 
 @lru_cache(maxsize=None)
-def _radial_coeffs(order: int):
+def _radial_coefficients(order: int):
     """For every (n, l) with n - l even: coefficients of R_n^l(rho)/rho^l in powers u^k of u = rho^2."""
     out = {}
     for n in range(order + 1):
@@ -91,10 +91,10 @@ def _radial_coeffs(order: int):
 
 def _radial_table(u: torch.Tensor, order: int):
     """``(N, L)`` table of R_n^l/rho^l at u = rho^2 and the column map."""
-    coeffs = _radial_coeffs(order)
+    table = _radial_coefficients(order)
     col = {}
     cols: list = []
-    for key, cs in coeffs.items():
+    for key, cs in table.items():
         acc = torch.full_like(u, cs[-1])
         for c in reversed(cs[:-1]):  # Horner in u
             acc = acc * u + c
@@ -124,7 +124,7 @@ def zernike_radial(rho: torch.Tensor, n: int, l: int) -> torch.Tensor:
     l = check_order(l, "l", n)
     if (n - l) % 2:
         return torch.zeros_like(rho)
-    cs = _radial_coeffs(n)[(n, l)]
+    cs = _radial_coefficients(n)[(n, l)]
     u = rho * rho
     acc = torch.full_like(rho, cs[-1])
     for c in reversed(cs[:-1]):

@@ -11,9 +11,9 @@ Every model is called as ``model(wi, wo) -> (..., C)``:
 * Parameters are Python numbers, sequences of numbers or float tensors whose
   **last axis is the channel axis** and whose leading axes broadcast against the
   leading shape of the directions. Per-pixel parameters are supported by shape:
-  directions ``(L, P, 3)`` (lights x pixels) with ``albedo`` of shape ``(P, 3)``
-  and ``roughness`` of shape ``(P, 1)`` give ``(L, P, 3)``. A scalar per-pixel
-  parameter therefore needs a trailing singleton axis (``(P, 1)``, not ``(P,)``).
+  directions ``(L, N, 3)`` (lights x pixels) with ``albedo`` of shape ``(N, 3)``
+  and ``roughness`` of shape ``(N, 1)`` give ``(L, N, 3)``. A scalar per-pixel
+  parameter therefore needs a trailing singleton axis (``(N, 1)``, not ``(N,)``).
 * Parameters are registered as buffers without copying: a tensor passed with
   ``requires_grad=True`` receives gradients. They are cast to the dtype and
   device of the directions at call time (float32 and float64 are supported).
@@ -224,7 +224,7 @@ class Lambertian(BRDFModel):
     r"""Lambertian reflectance :math:`f = \rho/\pi`.
 
     Args:
-        albedo: diffuse albedo ``rho >= 0``, trailing channel axis (e.g. ``(3,)`` or ``(P, 3)``).
+        albedo: diffuse albedo ``rho >= 0``, trailing channel axis (e.g. ``(3,)`` or ``(N, 3)``).
         eps: unused (kept for a uniform constructor).
 
     Reciprocal and isotropic; directional albedo equals ``albedo`` exactly.
@@ -265,34 +265,36 @@ class TorranceSparrow(BRDFModel):
     of the specular term over ``d omega_i`` diverges logarithmically as
     ``eps -> 0``, so quadrature results depend on how the singularity is handled.
 
+    with :math:`\rho_d` = ``albedo`` and :math:`\rho_s` = ``specular``.
+
     Args:
-        rho_d: diffuse albedo ``>= 0``.
-        rho_s: specular albedo ``>= 0``.
+        albedo: diffuse albedo ``rho_d >= 0``.
+        specular: specular albedo ``rho_s >= 0``.
         sigma: surface roughness (radians) ``> 0``.
         eta: relative refractive index ``> 1``.
         eps: cosine clamp (see above).
 
     Example:
-        >>> ts = TorranceSparrow(rho_d=0.3, rho_s=0.2, sigma=0.3, eta=1.4)
+        >>> ts = TorranceSparrow(albedo=0.3, specular=0.2, sigma=0.3, eta=1.4)
         >>> z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
         >>> round(float(ts(z, z)), 6)  # 0.3/pi + 0.2/(pi 0.09)
         0.802848
     """
 
     reciprocal = False
-    _params = (("rho_d", "nonneg"), ("rho_s", "nonneg"), ("sigma", "positive"), ("eta", "gt1"))
+    _params = (("albedo", "nonneg"), ("specular", "nonneg"), ("sigma", "positive"), ("eta", "gt1"))
 
-    def __init__(self, rho_d, rho_s, sigma, eta, eps: float = 1e-6) -> None:
-        super().__init__(eps=eps, rho_d=rho_d, rho_s=rho_s, sigma=sigma, eta=eta)
+    def __init__(self, albedo, specular, sigma, eta, eps: float = 1e-6) -> None:
+        super().__init__(eps=eps, albedo=albedo, specular=specular, sigma=sigma, eta=eta)
 
-    def _evaluate(self, wi, wo, rho_d, rho_s, sigma, eta):
+    def _evaluate(self, wi, wo, albedo, specular, sigma, eta):
         ci = wi[..., 2:3].clamp(min=self.eps, max=1.0)
         co = wo[..., 2:3].clamp(min=self.eps, max=1.0)
         theta_i = _polar_angle(wi)
         f1 = ((eta - 1.0) / (eta + 1.0)) ** 2
         fres = fresnel_dielectric(wo[..., 2:3], eta) / f1
         lobe = torch.exp(-((theta_i / (2.0 * sigma)) ** 2))
-        return rho_d * _INV_PI + rho_s * fres * lobe / (math.pi * sigma * sigma * ci * co)
+        return albedo * _INV_PI + specular * fres * lobe / (math.pi * sigma * sigma * ci * co)
 
 
 class CookTorranceGGX(BRDFModel):
@@ -360,29 +362,31 @@ class BlinnPhong(BRDFModel):
     1.0328 for ``n = 50``) and falls below ``k_s`` away from the normal. ``cos^n`` is evaluated as ``exp(n log(max(cos theta_h, eps)))`` so the
     gradient is finite for every ``n >= 0``. Reciprocal and isotropic.
 
+    with :math:`k_d` = ``albedo`` and :math:`k_s` = ``specular``.
+
     Args:
-        kd: diffuse weight ``>= 0``.
-        ks: specular weight ``>= 0``.
+        albedo: diffuse weight ``k_d >= 0``.
+        specular: specular weight ``k_s >= 0``.
         shininess: exponent ``n >= 0``.
         eps: clamp of ``cos theta_h``.
 
     Example:
-        >>> m = BlinnPhong(kd=0.0, ks=1.0, shininess=8.0)
+        >>> m = BlinnPhong(albedo=0.0, specular=1.0, shininess=8.0)
         >>> z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
         >>> round(float(m(z, z)) * math.pi, 6)  # (8 + 8) / 8
         2.0
     """
 
-    _params = (("kd", "nonneg"), ("ks", "nonneg"), ("shininess", "nonneg"))
+    _params = (("albedo", "nonneg"), ("specular", "nonneg"), ("shininess", "nonneg"))
 
-    def __init__(self, kd, ks, shininess, eps: float = 1e-6) -> None:
-        super().__init__(eps=eps, kd=kd, ks=ks, shininess=shininess)
+    def __init__(self, albedo, specular, shininess, eps: float = 1e-6) -> None:
+        super().__init__(eps=eps, albedo=albedo, specular=specular, shininess=shininess)
 
-    def _evaluate(self, wi, wo, kd, ks, shininess):
+    def _evaluate(self, wi, wo, albedo, specular, shininess):
         h, _ = _unit(wi + wo)
         nh = h[..., 2:3].clamp(min=self.eps, max=1.0)
         lobe = torch.exp(shininess * torch.log(nh))
-        return kd * _INV_PI + ks * (shininess + 8.0) / (8.0 * math.pi) * lobe
+        return albedo * _INV_PI + specular * (shininess + 8.0) / (8.0 * math.pi) * lobe
 
 
 class OrenNayar(BRDFModel):
@@ -446,26 +450,28 @@ class WardAnisotropic(BRDFModel):
     when they differ (``isotropic = False`` for the class). ``h . n`` is clamped
     by ``eps``. Reciprocal.
 
+    Here :math:`\rho_d` = ``albedo`` and :math:`\rho_s` = ``specular``.
+
     Args:
-        rho_d: diffuse albedo ``>= 0``.
-        rho_s: specular albedo ``>= 0``.
+        albedo: diffuse albedo ``rho_d >= 0``.
+        specular: specular albedo ``rho_s >= 0``.
         alpha_x, alpha_y: slope roughness along x and y, ``> 0``.
         eps: clamp of ``h . n``.
 
     Example:
-        >>> m = WardAnisotropic(rho_d=0.0, rho_s=1.0, alpha_x=0.5, alpha_y=0.5)
+        >>> m = WardAnisotropic(albedo=0.0, specular=1.0, alpha_x=0.5, alpha_y=0.5)
         >>> z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
         >>> round(float(m(z, z)), 6)  # 1 / (4 pi 0.25)
         0.31831
     """
 
     isotropic = False
-    _params = (("rho_d", "nonneg"), ("rho_s", "nonneg"), ("alpha_x", "positive"), ("alpha_y", "positive"))
+    _params = (("albedo", "nonneg"), ("specular", "nonneg"), ("alpha_x", "positive"), ("alpha_y", "positive"))
 
-    def __init__(self, rho_d, rho_s, alpha_x, alpha_y, eps: float = 1e-6) -> None:
-        super().__init__(eps=eps, rho_d=rho_d, rho_s=rho_s, alpha_x=alpha_x, alpha_y=alpha_y)
+    def __init__(self, albedo, specular, alpha_x, alpha_y, eps: float = 1e-6) -> None:
+        super().__init__(eps=eps, albedo=albedo, specular=specular, alpha_x=alpha_x, alpha_y=alpha_y)
 
-    def _evaluate(self, wi, wo, rho_d, rho_s, alpha_x, alpha_y):
+    def _evaluate(self, wi, wo, albedo, specular, alpha_x, alpha_y):
         h = wi + wo
         hn = h[..., 2:3].clamp(min=self.eps)
         hh = (h * h).sum(-1, keepdim=True)
@@ -473,7 +479,7 @@ class WardAnisotropic(BRDFModel):
         inv = 1.0 / (hn * hn)
         e = ((h[..., 0:1] / alpha_x) ** 2 + (h[..., 1:2] / alpha_y) ** 2) * inv
         spec = (hh * inv) * inv * torch.exp(-e) / (math.pi * alpha_x * alpha_y)
-        return rho_d * _INV_PI + rho_s * spec
+        return albedo * _INV_PI + specular * spec
 
 
 _REGISTRY: Dict[str, type] = {}

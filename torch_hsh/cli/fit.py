@@ -149,14 +149,14 @@ def _run_fit(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
                            "table's samples without a quadrature.") from err
     except ValueError as err:
         raise RuntimeError(_fit_message(str(err))) from err
-    coeffs, arrays, extra = result
+    coefficients, arrays, extra = result
     rel = arrays["relative_error"]
     summary = {"file": str(args.merl), "order": args.order, "method": args.method,
-               "num_functions": int(coeffs.shape[-1]), "grazing_cutoff": args.grazing_cutoff,
+               "num_functions": int(coefficients.shape[-1]), "grazing_cutoff": args.grazing_cutoff,
                "relative_error": rel.tolist(), "energy_accuracy": arrays["energy_accuracy"].tolist(),
                "runtime_s": time.perf_counter() - t, **extra}
-    _write_fit_npz(out, coeffs, arrays, summary)
-    say(f"order {args.order}: {coeffs.shape[-1]} functions x 3 channels, {summary['runtime_s']:.1f} s")
+    _write_fit_npz(out, coefficients, arrays, summary)
+    say(f"order {args.order}: {coefficients.shape[-1]} functions x 3 channels, {summary['runtime_s']:.1f} s")
     say(f"relative L2 error on the table's samples (R, G, B): {', '.join(f'{v:.4g}' for v in rel.tolist())}"
         + (" (solid-angle weighted)" if args.method == "samples" else " (sqrt(1 - Acc(P)))"))
     if "relative_error_unweighted" in extra:
@@ -171,7 +171,7 @@ def _run_fit(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     return _jsonable(summary)
 
 
-def _write_fit_npz(out: Path, coeffs, arrays, summary) -> None:
+def _write_fit_npz(out: Path, coefficients, arrays, summary) -> None:
     """Write the fit's ``.npz`` atomically; missing parent folders are created now, and removed again if the write fails."""
     created = []
     anc = out.parent
@@ -184,7 +184,7 @@ def _write_fit_npz(out: Path, coeffs, arrays, summary) -> None:
             d.mkdir()
         fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=".npz", dir=out.parent)
         with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, coefficients=coeffs, metadata=np.array(json.dumps(_jsonable(summary), allow_nan=False)),
+            np.savez(fh, coefficients=coefficients, metadata=np.array(json.dumps(_jsonable(summary), allow_nan=False)),
                      **arrays)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, out)
@@ -203,7 +203,7 @@ def _write_fit_npz(out: Path, coeffs, arrays, summary) -> None:
 def _fit_samples(brdf, args):
     from ..io.merl import fit_merl
 
-    coeffs, info = fit_merl(brdf, args.order, ridge=args.ridge or 0.0, grazing_cutoff=args.grazing_cutoff,
+    coefficients, info = fit_merl(brdf, args.order, ridge=args.ridge or 0.0, grazing_cutoff=args.grazing_cutoff,
                             progress=not args.quiet, return_info=True)
     arrays = {"relative_error": info["relative_error"].numpy(), "energy": info["energy"].numpy(),
               "energy_accuracy": info["accuracy"].numpy(),
@@ -213,7 +213,7 @@ def _fit_samples(brdf, args):
              "weights": "solid angle of each half/difference bin (torch_hsh.io.merl.merl_solid_angle_weights)",
              "ridge": args.ridge or 0.0, "num_samples": info["num_samples"], "coverage": info["coverage"],
              "condition": info["condition"]}
-    return coeffs.numpy(), arrays, extra
+    return coefficients.numpy(), arrays, extra
 
 
 def _fit_quadrature(brdf, args):
@@ -230,17 +230,17 @@ def _fit_quadrature(brdf, args):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ConvergenceWarning)
-        coeffs, info = project(brdf, order=args.order, return_info=True, **kw)
+        coefficients, info = project(brdf, order=args.order, return_info=True, **kw)
         energy = brdf_energy(brdf, order=args.order, **kw)
     for w in caught:  # --accept-unconverged: said in the options' names, even with --quiet
         if issubclass(w.category, ConvergenceWarning):
             print(f"{PROG} fit: warning: {_fit_message(str(w.message))}", file=sys.stderr, flush=True)
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    coeffs, energy = coeffs.detach().cpu(), energy.detach().cpu()
-    acc = energy_accuracy(coeffs, energy)
+    coefficients, energy = coefficients.detach().cpu(), energy.detach().cpu()
+    acc = energy_accuracy(coefficients, energy)
     rel = torch.sqrt((1.0 - acc[:, -1]).clamp(min=0.0))
     arrays = {"relative_error": rel.numpy(), "energy": energy.numpy(), "energy_accuracy": acc.numpy()}
     extra = {"error_estimate": info["error_estimate"], "n_theta": info["n_theta"], "n_phi": info["n_phi"],
              "converged": info["converged"]}
-    return coeffs.numpy(), arrays, extra
+    return coefficients.numpy(), arrays, extra

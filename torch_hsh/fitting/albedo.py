@@ -41,7 +41,7 @@ def _theta_table_dirs(wo: torch.Tensor, P: int) -> torch.Tensor:
 
 
 def directional_albedo(
-    coeffs: torch.Tensor,
+    coefficients: torch.Tensor,
     wo: torch.Tensor,
     order: Optional[int] = None,
     basis: BasisLike = _DEFAULT,
@@ -68,12 +68,12 @@ def directional_albedo(
     (exact for polynomial-type bases of order ``P``).
 
     Args:
-        coeffs: ``(..., K)`` or with ``channels=True`` ``(..., C, K)``.
+        coefficients: ``(..., K)`` or with ``channels=True`` ``(..., C, K)``.
         wo: ``(..., 3)`` outgoing local directions, broadcast element-wise with the
-            leading dimensions of ``coeffs`` (as in :func:`reconstruct`).
+            leading dimensions of ``coefficients`` (as in :func:`reconstruct`).
         order: inferred from ``K`` when omitted.
         basis: basis name or object.
-        channels: whether ``coeffs`` has a channel axis before ``K``.
+        channels: whether ``coefficients`` has a channel axis before ``K``.
         n_theta, n_phi: quadrature sizes for non-Helmholtz bases.
 
     Returns:
@@ -84,26 +84,26 @@ def directional_albedo(
         >>> round(float(directional_albedo(a, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))), 12)
         0.7
     """
-    check_tensor(coeffs, "coeffs", min_dims=2 if channels else 1)
+    check_tensor(coefficients, "coefficients", min_dims=2 if channels else 1)
     check_dirs(wo, "wo")
-    check_same([("coeffs", coeffs), ("wo", wo)])
+    check_same([("coefficients", coefficients), ("wo", wo)])
     b = _basis(basis)
-    P = _order_of(b, coeffs.shape[-1], order)
-    S, table = _albedo_matrix(b, P, coeffs.dtype, coeffs.device)
+    P = _order_of(b, coefficients.shape[-1], order)
+    S, table = _albedo_matrix(b, P, coefficients.dtype, coefficients.device)
     if S is not None:
         T = table(wo)  # (..., M)
-        cs = coeffs @ S  # (..., M) or (..., C, M)
+        cs = coefficients @ S  # (..., M) or (..., C, M)
         if channels:
-            broadcast_shapes([("coeffs[..., C, K]", coeffs.shape[:-2]), ("wo", wo.shape[:-1])])
+            broadcast_shapes([("coefficients[..., C, K]", coefficients.shape[:-2]), ("wo", wo.shape[:-1])])
             return (cs * T.unsqueeze(-2)).sum(-1)
-        broadcast_shapes([("coeffs[..., K]", coeffs.shape[:-1]), ("wo", wo.shape[:-1])])
+        broadcast_shapes([("coefficients[..., K]", coefficients.shape[:-1]), ("wo", wo.shape[:-1])])
         return (cs * T).sum(-1)
     nt = P + 2 if n_theta is None else n_theta
     npf = 2 * P + 2 if n_phi is None else n_phi
-    d, w = direction_quadrature(nt, npf, "hemisphere", dtype=coeffs.dtype, device=coeffs.device)
+    d, w = direction_quadrature(nt, npf, "hemisphere", dtype=coefficients.dtype, device=coefficients.device)
     wo_e = wo.unsqueeze(-2)  # (..., 1, 3)
     Bv = b.evaluate(d, wo_e, P)  # (..., Q, K)
     kern = (Bv * (w * d[:, 2]).unsqueeze(-1)).sum(-2)  # (..., K)
     if channels:
-        return (kern.unsqueeze(-2) * coeffs).sum(-1)
-    return (kern * coeffs).sum(-1)
+        return (kern.unsqueeze(-2) * coefficients).sum(-1)
+    return (kern * coefficients).sum(-1)

@@ -9,6 +9,8 @@ import torch
 from .._checks import check_shape, validation_enabled
 from ..bases import Basis, get_basis
 
+__all__ = ["BasisLike", "infer_order", "default_quadrature_sizes"]
+
 BasisLike = Union[str, Basis]
 _DEFAULT = "helmholtz_isotropic"
 _TWO_PI = 2.0 * math.pi
@@ -39,7 +41,7 @@ def infer_order(basis: BasisLike, num_functions: int) -> int:
         if c > k:
             break
     raise ValueError(
-        f"the last dimension of `coeffs` ({k}) matches no order of basis '{b.name}'; "
+        f"the last dimension of `coefficients` ({k}) matches no order of basis '{b.name}'; "
         f"valid sizes start {counts[:8]}{' ...' if len(counts) > 8 else ''}"
     )
 
@@ -50,7 +52,7 @@ def _order_of(b: Basis, K: int, order) -> int:
     P = b.check_order(order)
     if b.num_functions(P) != K:
         raise ValueError(
-            f"`coeffs` has {K} functions in its last dimension but basis '{b.name}' has "
+            f"`coefficients` has {K} functions in its last dimension but basis '{b.name}' has "
             f"{b.num_functions(P)} functions up to order {P}"
         )
     return P

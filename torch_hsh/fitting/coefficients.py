@@ -12,7 +12,7 @@ __all__ = ["reconstruct", "truncate", "energy_accuracy", "ENERGY_EXCESS_TOLERANC
 
 
 def reconstruct(
-    coeffs: torch.Tensor,
+    coefficients: torch.Tensor,
     wi: torch.Tensor,
     wo: torch.Tensor,
     order: Optional[int] = None,
@@ -23,25 +23,25 @@ def reconstruct(
 
     Broadcasting is element-wise over leading dimensions:
 
-    * ``channels=False``: ``coeffs`` ``(..., K)`` -> result ``(...)``, where the
-      leading shapes of ``coeffs``, ``wi`` ``(..., 3)`` and ``wo`` ``(..., 3)``
+    * ``channels=False``: ``coefficients`` ``(..., K)`` -> result ``(...)``, where the
+      leading shapes of ``coefficients``, ``wi`` ``(..., 3)`` and ``wo`` ``(..., 3)``
       broadcast together. One BRDF at ``N`` points: ``(K,)`` with ``(N, 3)`` ->
       ``(N,)``; ``B`` BRDFs from a batched fit, ``(B, K)``, at per-BRDF points
-      ``(B, N, 3)``: pass ``coeffs[:, None]``.
-    * ``channels=True``: ``coeffs`` ``(..., C, K)`` -> ``(..., C)``; e.g. ``(C, K)``
+      ``(B, N, 3)``: pass ``coefficients[:, None]``.
+    * ``channels=True``: ``coefficients`` ``(..., C, K)`` -> ``(..., C)``; e.g. ``(C, K)``
       from :func:`project`/:func:`fit` with ``(N, 3)`` directions -> ``(N, C)``.
 
     Args:
-        coeffs: coefficients in the column order of ``basis.evaluate``.
+        coefficients: coefficients in the column order of ``basis.evaluate``.
         wi, wo: local directions ``(..., 3)``.
         order: basis order; inferred from ``K`` when omitted (``ValueError`` when
             ``K`` matches no order).
         basis: basis name or object.
-        channels: whether the second-to-last dimension of ``coeffs`` is a channel axis.
+        channels: whether the second-to-last dimension of ``coefficients`` is a channel axis.
 
     Returns:
-        Values in the dtype of ``coeffs``; differentiable with respect to
-        ``coeffs`` and the directions.
+        Values in the dtype of ``coefficients``; differentiable with respect to
+        ``coefficients`` and the directions.
 
     Example:
         >>> import math
@@ -50,23 +50,23 @@ def reconstruct(
         >>> round(float(reconstruct(a, w, w)[0] * math.pi), 12)
         0.5
     """
-    check_tensor(coeffs, "coeffs", min_dims=2 if channels else 1)
+    check_tensor(coefficients, "coefficients", min_dims=2 if channels else 1)
     check_dirs(wi, "wi")
     check_dirs(wo, "wo")
-    check_same([("coeffs", coeffs), ("wi", wi), ("wo", wo)])
+    check_same([("coefficients", coefficients), ("wi", wi), ("wo", wo)])
     b = _basis(basis)
-    P = _order_of(b, coeffs.shape[-1], order)
+    P = _order_of(b, coefficients.shape[-1], order)
     B = b.evaluate(wi, wo, P)  # (..., K)
     if channels:
-        broadcast_shapes([("coeffs[..., C, K]", coeffs.shape[:-2]), ("wi/wo", B.shape[:-1])])
-        return (B.unsqueeze(-2) * coeffs).sum(-1)
-    broadcast_shapes([("coeffs[..., K]", coeffs.shape[:-1]), ("wi/wo", B.shape[:-1])])
-    return (B * coeffs).sum(-1)
+        broadcast_shapes([("coefficients[..., C, K]", coefficients.shape[:-2]), ("wi/wo", B.shape[:-1])])
+        return (B.unsqueeze(-2) * coefficients).sum(-1)
+    broadcast_shapes([("coefficients[..., K]", coefficients.shape[:-1]), ("wi/wo", B.shape[:-1])])
+    return (B * coefficients).sum(-1)
 
 
 
 def truncate(
-    coeffs: torch.Tensor,
+    coefficients: torch.Tensor,
     order: int,
     basis: BasisLike = _DEFAULT,
     source_order: Optional[int] = None,
@@ -75,7 +75,7 @@ def truncate(
     """Keep the functions up to ``order`` (those with ``basis.function_orders <= order``).
 
     Args:
-        coeffs: ``(..., K)`` coefficients of order ``source_order`` (inferred from ``K``).
+        coefficients: ``(..., K)`` coefficients of order ``source_order`` (inferred from ``K``).
         order: target order ``P <= source_order``.
         basis: basis name or object.
         zero_fill: keep the shape ``(..., K)`` and zero the dropped functions
@@ -91,16 +91,16 @@ def truncate(
         >>> truncate(torch.arange(20.0), 1).tolist()
         [0.0, 1.0, 2.0, 3.0]
     """
-    check_tensor(coeffs, "coeffs", min_dims=1)
+    check_tensor(coefficients, "coefficients", min_dims=1)
     b = _basis(basis)
-    Ps = _order_of(b, coeffs.shape[-1], source_order)
+    Ps = _order_of(b, coefficients.shape[-1], source_order)
     P = b.check_order(order)
     if P > Ps:
-        raise ValueError(f"`order` ({P}) must be <= the order of `coeffs` ({Ps})")
-    keep = b.function_orders(Ps).to(coeffs.device) <= P
+        raise ValueError(f"`order` ({P}) must be <= the order of `coefficients` ({Ps})")
+    keep = b.function_orders(Ps).to(coefficients.device) <= P
     if zero_fill:
-        return coeffs * keep.to(coeffs.dtype)
-    return coeffs[..., keep]
+        return coefficients * keep.to(coefficients.dtype)
+    return coefficients[..., keep]
 
 
 #: Relative excess of sum(a_k^2) over ``total_energy`` that :func:`energy_accuracy` tolerates
@@ -109,7 +109,7 @@ ENERGY_EXCESS_TOLERANCE = 1e-2
 
 
 def energy_accuracy(
-    coeffs: torch.Tensor,
+    coefficients: torch.Tensor,
     total_energy: Union[torch.Tensor, float],
     basis: BasisLike = _DEFAULT,
     order: Optional[int] = None,
@@ -121,11 +121,11 @@ def energy_accuracy(
     with :math:`L_k` = ``basis.function_orders``.
 
     Args:
-        coeffs: ``(..., K)`` coefficients of order ``P`` (inferred from ``K``).
+        coefficients: ``(..., K)`` coefficients of order ``P`` (inferred from ``K``).
         total_energy: :math:`\iint f^2` (e.g. :func:`brdf_energy`), a positive
-            number or a tensor broadcasting with ``coeffs.shape[:-1]``.
+            number or a tensor broadcasting with ``coefficients.shape[:-1]``.
         basis: basis name or object.
-        order: order of ``coeffs`` (checked against ``K``).
+        order: order of ``coefficients`` (checked against ``K``).
 
     Returns:
         ``(..., P + 1)``, non-decreasing in the last dimension; equals 1 at
@@ -141,21 +141,22 @@ def energy_accuracy(
         >>> energy_accuracy(a, 25.0).tolist()
         [0.36, 1.0]
     """
-    check_tensor(coeffs, "coeffs", min_dims=1)
+    check_tensor(coefficients, "coefficients", min_dims=1)
     b = _basis(basis)
-    P = _order_of(b, coeffs.shape[-1], order)
+    P = _order_of(b, coefficients.shape[-1], order)
     if not isinstance(total_energy, torch.Tensor):
         if isinstance(total_energy, bool) or not isinstance(total_energy, (int, float)):
             raise TypeError(f"`total_energy` must be a number or a tensor, got {type(total_energy).__name__}")
-        total_energy = torch.tensor(float(total_energy), dtype=coeffs.dtype, device=coeffs.device)
+        total_energy = torch.tensor(float(total_energy), dtype=coefficients.dtype, device=coefficients.device)
     check_tensor(total_energy, "total_energy")
     if validation_enabled() and bool((total_energy <= 0).any()):
         raise ValueError("`total_energy` must be > 0")
-    broadcast_shapes([("coeffs[..., K]", coeffs.shape[:-1]), ("total_energy", total_energy.shape)])
-    labels = b.function_orders(P).to(coeffs.device)
-    onehot = (labels[:, None] == torch.arange(P + 1, device=coeffs.device)[None, :]).to(coeffs.dtype)  # (K, P+1)
-    per_order = (coeffs * coeffs) @ onehot
-    acc = torch.cumsum(per_order, dim=-1) / total_energy.to(coeffs.dtype).unsqueeze(-1)
+    broadcast_shapes([("coefficients[..., K]", coefficients.shape[:-1]), ("total_energy", total_energy.shape)])
+    labels = b.function_orders(P).to(coefficients.device)
+    onehot = (labels[:, None] == torch.arange(P + 1, device=coefficients.device)[None, :]).to(coefficients.dtype)
+    # onehot: (K, P+1)
+    per_order = (coefficients * coefficients) @ onehot
+    acc = torch.cumsum(per_order, dim=-1) / total_energy.to(coefficients.dtype).unsqueeze(-1)
     if validation_enabled() and bool((acc[..., -1] > 1.0 + ENERGY_EXCESS_TOLERANCE).any()):
         worst = float(acc[..., -1].max())
         raise ValueError(

@@ -78,9 +78,9 @@ def fit(
         return_info: also return a dict of diagnostics.
 
     Returns:
-        ``coeffs`` (see table), or ``(coeffs, info)`` with ``info`` holding
+        ``coefficients`` (see table), or ``(coefficients, info)`` with ``info`` holding
         ``residuals`` (same shape as ``values``: ``y - A a``),
-        ``rms`` (weighted RMS residual per fitted function, shape of ``coeffs``
+        ``rms`` (weighted RMS residual per fitted function, shape of ``coefficients``
         without ``K``), ``relative_residual`` (``||r||_W / ||y||_W``),
         ``condition`` (condition-number estimate of the normal matrix, per batch),
         ``solver`` (``"cholesky"`` or ``"lstsq"``), ``num_samples`` and
@@ -111,11 +111,11 @@ def fit(
     if ridge > 0:
         L = b.function_orders(P).to(device=dev, dtype=f64)
         lam_diag = ridge * (1.0 + L) ** ridge_growth
-    coeffs, solver, cond = _solve(A, y64, wt, lam_diag, method, rcond)  # coeffs: (Bn, K, C)
-    res = _LAYOUT[layout](coeffs.transpose(-1, -2)).to(out_dtype)  # from (Bn, C, K)
+    coefficients, solver, cond = _solve(A, y64, wt, lam_diag, method, rcond)  # coefficients: (Bn, K, C)
+    res = _LAYOUT[layout](coefficients.transpose(-1, -2)).to(out_dtype)  # from (Bn, C, K)
     if not return_info:
         return res
-    info = _diagnostics(A, coeffs, y64, wt, values, layout, out_dtype)
+    info = _diagnostics(A, coefficients, y64, wt, values, layout, out_dtype)
     info.update(condition=cond, solver=solver, num_samples=N, num_functions=K)
     return res, info
 
@@ -199,7 +199,7 @@ def _sample_weights(weights: Optional[torch.Tensor], values: torch.Tensor, N: in
 
 
 def _solve(A, y64, wt, lam_diag, method, rcond):
-    """``(coeffs (Bn, K, C), solver, condition)``: the normal equations by Cholesky, else the augmented lstsq."""
+    """``(coefficients (Bn, K, C), solver, condition)``: the normal equations by Cholesky, else the augmented lstsq."""
     Bn = y64.shape[0]
     Aw = A if wt is None else A * wt[..., None]  # W A
     G = A.transpose(-1, -2) @ Aw  # (Bg, K, K), Bg in {1, Bd, Bw}
@@ -219,12 +219,15 @@ def _solve(A, y64, wt, lam_diag, method, rcond):
             return torch.cholesky_solve(rhs, Lc), "cholesky", cond
         if method == "cholesky":
             raise ValueError("the normal equations are singular (Cholesky failed); use ridge > 0 or method='lstsq'")
-    coeffs, cond = _solve_lstsq(A, y64, wt, lam_diag, rcond)
-    return coeffs, "lstsq", cond
+    coefficients, cond = _solve_lstsq(A, y64, wt, lam_diag, rcond)
+    return coefficients, "lstsq", cond
 
 
 def _solve_lstsq(A, y64, wt, lam_diag, rcond):
-    """Rank-revealing least squares of the augmented system ``[sqrt(W) A; sqrt(Lambda)]``; ``(coeffs, condition)``."""
+    """Rank-revealing least squares of the augmented system ``[sqrt(W) A; sqrt(Lambda)]``.
+
+    Returns ``(coefficients, condition)``.
+    """
     f64 = torch.float64
     Bn, N, K = y64.shape[0], A.shape[1], A.shape[-1]
     sw = None if wt is None else torch.sqrt(wt)
@@ -237,19 +240,19 @@ def _solve_lstsq(A, y64, wt, lam_diag, rcond):
         ya = torch.cat([ya, ya.new_zeros(ya.shape[0], K, ya.shape[-1])], dim=1)
     rc = rcond if rcond is not None else torch.finfo(f64).eps * max(Aa.shape[1], K)
     if Aa.device.type == "cpu":
-        coeffs = torch.linalg.lstsq(Aa, ya, rcond=rc, driver="gelsd").solution
+        coefficients = torch.linalg.lstsq(Aa, ya, rcond=rc, driver="gelsd").solution
     else:
-        coeffs = torch.linalg.pinv(Aa, rtol=rc) @ ya
+        coefficients = torch.linalg.pinv(Aa, rtol=rc) @ ya
     sv = torch.linalg.svdvals(Aa)
     cond = (sv[..., 0] / sv[..., -1].clamp(min=1e-300)) ** 2 if Aa.shape[1] >= K else torch.full(
         sv.shape[:-1], float("inf"), dtype=f64, device=y64.device)
-    return coeffs, cond
+    return coefficients, cond
 
 
-def _diagnostics(A, coeffs, y64, wt, values, layout: str, out_dtype) -> Dict[str, object]:
+def _diagnostics(A, coefficients, y64, wt, values, layout: str, out_dtype) -> Dict[str, object]:
     """Residuals, weighted RMS and relative residual of the fit, in the layout of ``values``/the result."""
     N = y64.shape[1]
-    pred = A @ coeffs  # (Bn, N, C)
+    pred = A @ coefficients  # (Bn, N, C)
     r = y64 - pred
     wr = torch.ones_like(r[..., :1]) if wt is None else wt[..., None].expand(r.shape[0], N, 1)
     rss = (wr * r * r).sum(1)  # (Bn, C)

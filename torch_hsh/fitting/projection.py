@@ -159,7 +159,7 @@ def project(
 
     Returns:
         ``(K,)`` coefficients for a scalar BRDF, ``(C, K)`` for ``C`` channels, in
-        the column order of ``basis.evaluate``; with ``return_info``, ``(coeffs, info)``.
+        the column order of ``basis.evaluate``; with ``return_info``, ``(coefficients, info)``.
 
     Raises:
         ConvergenceError: the budget ran out before every direction's last change was
@@ -300,7 +300,7 @@ def brdf_accuracy(
     Returns:
         ``(P + 1,)`` for a scalar BRDF, ``(C, P + 1)`` for ``C`` channels; with
         ``return_info``, ``(acc, info)`` (``info["error_estimate"]`` is in units of Acc,
-        ``info["coeffs"]`` and ``info["energy"]`` are the converged sums).
+        ``info["coefficients"]`` and ``info["energy"]`` are the converged sums).
 
     Example:
         >>> acc = brdf_accuracy(lambda wi, wo: torch.full(wi.shape[:1], 0.2, dtype=wi.dtype), 2)
@@ -320,5 +320,5 @@ def brdf_accuracy(
     out = _squeeze(acc_of(r), r)
     if not return_info:
         return out
-    info = dict(info, coeffs=_squeeze(r.a, r), energy=_squeeze(r.E, r))
+    info = dict(info, coefficients=_squeeze(r.a, r), energy=_squeeze(r.E, r))
     return out, info

@@ -151,8 +151,10 @@ def _channels_last(v: torch.Tensor, shape) -> torch.Tensor:
 
 
 def rule_sums(brdf, basis, order: int, n_theta: int, n_phi: int, reduced: bool, cutoff: float,
-              want_a: bool, want_E: bool, dtype, device, budget_chunk: int = 1 << 21) -> RuleResult:
+              want_a: bool, want_E: bool, dtype, device, chunk_size: int = 1 << 21) -> RuleResult:
     """Coefficients and/or energy of ``brdf`` by one product rule (see the module docstring).
+
+    ``chunk_size`` bounds the memory: about that many direction pairs (samples) are evaluated per chunk.
 
     Returns:
         :class:`RuleResult`; ``a`` is ``(C, K)`` and ``E`` is ``(C,)`` (channel axis always present).
@@ -164,8 +166,8 @@ def rule_sums(brdf, basis, order: int, n_theta: int, n_phi: int, reduced: bool, 
     use_lp = D is not None and n_phi > 2 * D + 2
     M = 2 * D + 2 if D is not None and use_lp else n_phi
     if reduced:
-        return _reduced(brdf, basis, P, z, wz, phi, M, D, use_lp, want_a, want_E, budget_chunk)
-    return _full(brdf, basis, P, z, wz, phi, M, D, use_lp, want_a, want_E, budget_chunk)
+        return _reduced(brdf, basis, P, z, wz, phi, M, D, use_lp, want_a, want_E, chunk_size)
+    return _full(brdf, basis, P, z, wz, phi, M, D, use_lp, want_a, want_E, chunk_size)
 
 
 def _reduced(brdf, b, P, z, wz, phi, M, D, use_lp, want_a, want_E, chunk):

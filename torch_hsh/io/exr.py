@@ -268,7 +268,7 @@ def write_normal_map_exr(path, normals, mask=None, overwrite: bool = False) -> P
 
 def write_coefficient_maps_exr(
     path,
-    coeffs,
+    coefficients,
     names: Optional[Sequence[str]] = None,
     colors: Optional[Sequence[str]] = None,
     overwrite: bool = False,
@@ -277,7 +277,7 @@ def write_coefficient_maps_exr(
 
     Args:
         path: output ``.exr`` file.
-        coeffs: ``(H, W, C, K)`` array/tensor (``C`` colour channels, ``K``
+        coefficients: ``(H, W, C, K)`` array/tensor (``C`` colour channels, ``K``
             basis coefficients); a ``(H, W, K)`` array is treated as ``C = 1``.
         names: ``K`` coefficient names, e.g. ``"a_2_1_0"`` for the isotropic
             triple ``(p, r, q) = (2, 1, 0)``; default ``c0000, c0001, ...``.
@@ -296,12 +296,12 @@ def write_coefficient_maps_exr(
         >>> np.array_equal(read_coefficient_maps_exr(tmp_path / "c.exr")[0], c.numpy())  # doctest: +SKIP
         True
     """
-    a = _as_array(coeffs, "coeffs").astype(np.float32)
-    check_shape(a, "coeffs", ("H", "W", "C", "K"), ("H", "W", "K"))
+    a = _as_array(coefficients, "coefficients").astype(np.float32)
+    check_shape(a, "coefficients", ("H", "W", "C", "K"), ("H", "W", "K"))
     if a.ndim == 3:
         a = a[:, :, None, :]
     if 0 in a.shape:
-        raise ValueError(f"`coeffs` must be non-empty, got shape {a.shape}")
+        raise ValueError(f"`coefficients` must be non-empty, got shape {a.shape}")
     _, _, c, k = a.shape
     if names is None:
         names = [f"c{i:04d}" for i in range(k)]
@@ -325,14 +325,14 @@ def read_coefficient_maps_exr(path) -> Tuple[np.ndarray, List[str], List[str]]:
     r"""Read a file from :func:`write_coefficient_maps_exr`.
 
     Returns:
-        ``(coeffs, names, colors)``: ``(H, W, C, K)`` float32 array and the
+        ``(coefficients, names, colors)``: ``(H, W, C, K)`` float32 array and the
         coefficient and colour names in the written order.
 
     Raises:
         ValueError: the file lacks the torch_hsh header attributes or channels.
 
     Example:
-        >>> coeffs, names, colors = read_coefficient_maps_exr(tmp_path / "c.exr")  # doctest: +SKIP
+        >>> coefficients, names, colors = read_coefficient_maps_exr(tmp_path / "c.exr")  # doctest: +SKIP
     """
     hdr = _read_header(path)
     if _COEFF_ATTR not in hdr or _COLOR_ATTR not in hdr:

@@ -554,7 +554,7 @@ def write_merl(path: PathLike, table_or_brdf, overwrite: bool = False, scale=MER
 
 
 def tabulate_merl(model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], shape: Sequence[int] = MERL_SHAPE,
-                  scale=MERL_SCALE, below_horizon: str = "unmeasured", chunk: int = 8) -> MERLBRDF:
+                  scale=MERL_SCALE, below_horizon: str = "unmeasured", chunk_size: int = 8) -> MERLBRDF:
     """Sample a BRDF callable at the bin centres of the MERL grid.
 
     Every bin ``(i, j, k)`` gets ``model(wi, wo)`` at the direction pair of its
@@ -570,7 +570,7 @@ def tabulate_merl(model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], s
         below_horizon: bins whose centre puts ``wi`` or ``wo`` below the horizon
             are stored as unmeasured (``"unmeasured"``, default, like missing MERL
             samples) or as 0 (``"zero"``).
-        chunk: ``theta_h`` rows evaluated per call (bounds peak memory).
+        chunk_size: ``theta_h`` rows of bins evaluated per call of ``model`` (bounds peak memory).
 
     Returns:
         :class:`MERLBRDF`.
@@ -587,8 +587,8 @@ def tabulate_merl(model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], s
     nh, nd, npd = _check_shape(shape, "shape")
     s = _check_scale(scale)
     _check_option(below_horizon, "below_horizon", ("unmeasured", "zero"))
-    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
-        raise ValueError(f"`chunk` must be a positive integer, got {chunk!r}")
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
+        raise ValueError(f"`chunk_size` must be a positive integer, got {chunk_size!r}")
     dev = None
     if isinstance(model, nn.Module):
         bufs = list(model.buffers()) + list(model.parameters())
@@ -596,8 +596,8 @@ def tabulate_merl(model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], s
     th, td, pd = merl_bin_centers((nh, nd, npd), dtype=torch.float64, device=dev)
     raw = torch.empty(3, nh, nd, npd, dtype=torch.float64, device=dev)
     with torch.no_grad():
-        for start in range(0, nh, chunk):
-            rows = th[start:start + chunk]
+        for start in range(0, nh, chunk_size):
+            rows = th[start:start + chunk_size]
             TH, TD, PD = torch.meshgrid(rows, td, pd, indexing="ij")
             wi, wo = half_diff_to_dirs(TH, torch.zeros_like(TH), TD, PD)
             f = model(wi, wo)
@@ -609,7 +609,7 @@ def tabulate_merl(model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], s
             if below_horizon == "unmeasured":
                 below = (wi[..., 2] < 0) | (wo[..., 2] < 0)
                 block = torch.where(below, torch.full_like(block, UNMEASURED_RAW), block)
-            raw[:, start:start + chunk] = block
+            raw[:, start:start + chunk_size] = block
     return MERLBRDF(raw, scale=s)
 
 
@@ -724,7 +724,7 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
         return_info: also return the diagnostics dict.
 
     Returns:
-        ``(3, K)`` float64 coefficients; with ``return_info``, ``(coeffs, info)`` where ``info``
+        ``(3, K)`` float64 coefficients; with ``return_info``, ``(coefficients, info)`` where ``info``
         holds, per channel ``(3,)`` unless noted:
 
         * ``relative_error``: :math:`\|y - Aa\|_W / \|y\|_W`, the weighted relative L2 error on
@@ -761,17 +761,17 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
     dev = sums.rhs.device
     orders = b.function_orders(P).to(dev)
     per_order = torch.zeros(3, P + 1, dtype=torch.float64, device=dev)
-    coeffs, cond = _solve_orders(sums, ridge, orders, torch.ones(K, dtype=torch.bool, device=dev))
+    coefficients, cond = _solve_orders(sums, ridge, orders, torch.ones(K, dtype=torch.bool, device=dev))
     full = torch.ones(K, dtype=torch.bool, device=dev)
     for p in range(P + 1):
         sel = orders <= p
-        a_p = coeffs if p == P else _solve_orders(sums, ridge, orders, sel)[0]
+        a_p = coefficients if p == P else _solve_orders(sums, ridge, orders, sel)[0]
         per_order[:, p] = _relative_error(a_p, sel, sums.G, sums.rhs, sums.yy)
     if not return_info:
-        return coeffs
+        return coefficients
     info = {
         "relative_error": per_order[:, P].clone(),
-        "relative_error_unweighted": _relative_error(coeffs, full, sums.Gu, sums.rhsu, sums.yyu),
+        "relative_error_unweighted": _relative_error(coefficients, full, sums.Gu, sums.rhsu, sums.yyu),
         "relative_error_per_order": per_order,
         "energy": sums.yy,
         "accuracy": 1.0 - per_order ** 2,
@@ -780,7 +780,7 @@ def fit_merl(brdf, order: int, basis="helmholtz_isotropic", weights: Optional[to
         "condition": cond,
         "runtime_s": time.perf_counter() - t0,
     }
-    return coeffs, info
+    return coefficients, info
 
 
 def _check_fit_arguments(brdf, order, basis, ridge, grazing_cutoff, chunk_size):

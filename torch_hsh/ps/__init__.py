@@ -21,7 +21,7 @@ pipeline: the cast-shadow loop (:mod:`~torch_hsh.ps.shadows`), the interreflecti
 (:mod:`~torch_hsh.ps.interreflections`) and the held-out-light evaluation
 (:mod:`~torch_hsh.ps.evaluation`).
 
-Inputs everywhere: ``images (L, H, W, C)`` or ``(L, P, C)``, ``lights (L, 3)`` in the DiLiGenT frame
+Inputs everywhere: ``images (L, H, W, C)`` or ``(L, N, C)``, ``lights (L, 3)`` in the DiLiGenT frame
 (x right, y up, z toward the camera), optional ``intensities (L,)``/``(L, C)`` and ``mask (H, W)``.
 
 Example:
@@ -57,11 +57,3 @@ __all__ = [
     "solve_hsh",
     "trimmed_weights",
 ]
-
-
-def __getattr__(name):
-    if name == "hsh":  # the deprecated module path (torch_hsh.ps.pipeline); importing it warns
-        import importlib
-
-        return importlib.import_module(f"{__name__}.hsh")
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -7,15 +7,15 @@ import torch
 
 __all__ = ["ROW_CHUNK", "MIN_CHUNK", "scatter_pixels", "row_sum", "for_chunks"]
 
-#: Rows per chunk of :func:`row_sum` (and of other per-pixel passes over ``(P, L)`` tensors).
+#: Rows per chunk of :func:`row_sum` (and of other per-pixel passes over ``(N, L)`` tensors).
 ROW_CHUNK = 65536
 
 
 def row_sum(x: torch.Tensor, dtype: Optional[torch.dtype] = None, chunk: int = ROW_CHUNK) -> torch.Tensor:
-    """``x.to(dtype).sum(-1)`` for ``x (P, L)``, in row chunks.
+    """``x.to(dtype).sum(-1)`` for ``x (N, L)``, in row chunks.
 
     A bool sum upcasts to int64 and ``sum(dtype=...)`` copies its input, so on the
-    whole ``(P, L)`` tensor either would allocate a temporary several times the
+    whole ``(N, L)`` tensor either would allocate a temporary several times the
     size of ``x`` (512 MB at 1024^2 pixels x 96 lights); chunking bounds it.
     """
     if x.shape[0] == 0:
@@ -60,7 +60,7 @@ def for_chunks(n: int, step: int, run: Callable[[slice], None], shrink: bool = F
 
 
 def scatter_pixels(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Put ``(P, ...)`` per-pixel values back into a ``(*S, ...)`` map, zero outside ``mask``."""
+    """Put ``(N, ...)`` per-pixel values back into a ``(*S, ...)`` map, zero outside ``mask``."""
     out = torch.zeros(mask.numel(), *values.shape[1:], dtype=values.dtype, device=values.device)
     out[mask.reshape(-1)] = values
     return out.reshape(*mask.shape, *values.shape[1:])

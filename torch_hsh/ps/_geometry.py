@@ -40,7 +40,7 @@ def angular_error(
 
 
 def tangent_frame(n: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Two unit tangents orthogonal to unit normals ``n (P, 3)`` (Duff et al. 2017, branchless)."""
+    """Two unit tangents orthogonal to unit normals ``n (N, 3)`` (Duff et al. 2017, branchless)."""
     x, y, z = n.unbind(-1)
     sign = torch.where(z >= 0, 1.0, -1.0).to(z.dtype)
     a = -1.0 / (sign + z)

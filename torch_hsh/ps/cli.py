@@ -24,7 +24,7 @@ Written files: ``normals.npy`` (H, W, 3) float32 in the DiLiGenT frame (zero out
 ``coefficients.exr`` (coefficient maps), ``metrics.json``, ``normal_map.png``, ``confidence.png``
 (8-bit, when the solver reports a confidence map), ``error_map.png`` (with ground truth) and
 ``relighting.png`` (input / relit / error; these two need matplotlib), ``result.npz`` (the whole
-:class:`~torch_hsh.ps.HSHResult`, see ``HSHResult.load``), ``manifest.json``; with ``--depth``:
+:class:`~torch_hsh.ps.HSHResult`, see ``HSHResult.read``), ``manifest.json``; with ``--depth``:
 ``depth.npy``, ``depth.exr`` and ``surface.png`` (a shaded rendering of the integrated depth); with
 ``--mesh``: ``mesh.ply`` (or ``mesh.obj``) and ``surface.png``.
 
@@ -317,7 +317,7 @@ def _solver_options(args) -> Dict[str, Any]:
 def _save_surface(stage, args, res, mask, metrics, say) -> None:
     """depth.npy + depth.exr (``--depth``), mesh.ply / mesh.obj (``--mesh``) and surface.png from the normals."""
     from ..io.diligent import _write_png
-    from ..surface import integrate_normals, save_depth, save_mesh, shade_depth
+    from ..surface import integrate_normals, write_depth, write_mesh, shade_depth
 
     t = time.perf_counter()
     n = res.normals.detach().cpu().double()
@@ -331,11 +331,11 @@ def _save_surface(stage, args, res, mask, metrics, say) -> None:
         metrics["surface"] = {"integrator": args.integrator, "components": info.get("components"),
                               "runtime_s": time.perf_counter() - t}
     if args.depth:
-        save_depth(stage.file("depth.npy"), depth, m)
-        save_depth(stage.file("depth.exr"), depth, m)
+        write_depth(stage.file("depth.npy"), depth, m)
+        write_depth(stage.file("depth.exr"), depth, m)
     if args.mesh:
         albedo = res.albedo.detach().cpu().double() if getattr(res, "albedo", None) is not None else None
-        save_mesh(stage.file(f"mesh.{args.mesh}"), depth, m, normals=n, albedo=albedo)
+        write_mesh(stage.file(f"mesh.{args.mesh}"), depth, m, normals=n, albedo=albedo)
     img = shade_depth(depth, m).cpu().numpy()
     _write_png(stage.file("surface.png"), _to_png8(img))
     say(f"surface: {how} in {metrics['surface']['runtime_s']:.2f} s")
@@ -467,8 +467,8 @@ def _run(args, ap: argparse.ArgumentParser, load: Callable[..., Dict[str, Any]])
                  f"so that at least 3 of the L = {L} lights remain, got {args.holdout}")
     data = {k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in data.items()}
     imgs, lights, inten, mask, gt = (data[k] for k in ("images", "lights", "intensities", "mask", "normals_gt"))
-    P = int(mask.sum())
-    if P == 0:
+    N = int(mask.sum())
+    if N == 0:
         raise InputError(f"{data['name']}: the mask selects no pixel")
 
     previous = _previous_result(out)
@@ -476,11 +476,11 @@ def _run(args, ap: argparse.ArgumentParser, load: Callable[..., Dict[str, Any]])
         say(f"--out {out} holds a torch-hsh result ({previous}); it is replaced when this run ends")
     # ---- solve (the output folder is staged only now, so a failed solve creates nothing)
     with _Staging(out) as stage:
-        say(f"data: {data['name']}  pixels={P} lights={L} order={order} "
+        say(f"data: {data['name']}  pixels={N} lights={L} order={order} "
             f"materials={materials if materials else 'independent'} device={dev}")
         res, t_hsh, rows = _solve_methods(args, opts, imgs, lights, inten, mask, gt, say)
         metrics: Dict[str, Any] = {
-            "method": "hsh", "order": order, "materials": materials, "pixels": P, "lights": L,
+            "method": "hsh", "order": order, "materials": materials, "pixels": N, "lights": L,
             "runtime_s": t_hsh, "data": data["name"], "drop_first": args.drop_first,
             "methods": {name: {"mean_angular_error_deg": m, "median_angular_error_deg": md, "runtime_s": tt}
                         for name, m, md, tt in rows},
@@ -500,8 +500,8 @@ def _run(args, ap: argparse.ArgumentParser, load: Callable[..., Dict[str, Any]])
             metrics["holdout"] = _holdout_metrics(args, opts, imgs, lights, inten, mask, say)
 
         np.save(stage.file("normals.npy"), res.normals.detach().cpu().numpy().astype(np.float32))
-        if hasattr(res, "save"):
-            res.save(stage.file("result.npz"))
+        if hasattr(res, "write"):
+            res.write(stage.file("result.npz"))
         if args.depth or args.mesh:
             _save_surface(stage, args, res, mask, metrics, say)
         write_coefficient_maps_exr(stage.file("coefficients.exr"), res.coefficients.detach().cpu().float())

@@ -4,7 +4,7 @@ Takes the observations and the refined normals; returns per-pixel isotropic
 Helmholtz coefficients (ridge least squares; for the shared model shrunk
 toward the mix of the basis BRDFs and fitted to every valid observation) and
 the weighted RMS residual. Memory: the coefficients go either into a compact
-``(P, C, K)`` buffer (scattered into the output map by the result stage, once
+``(N, C, K)`` buffer (scattered into the output map by the result stage, once
 the observations are released) or, when that gives the lower peak, straight
 into the rows of the output map (:func:`_write_map_in_place`). The safeguard penalises the
 rendered BRDF where it is negative at the lights and at a fixed hemisphere of
@@ -72,11 +72,11 @@ class Coefficients:
     """State after stage 5.
 
     Attributes:
-        coefficients: either ``(P, C, K)`` (one row per masked pixel, solver
-            order; ``pixels`` is ``None``) or the ``(N, C, K)`` rows of the
-            output map (``N = mask.numel()``, zero outside the mask).
-        pixels: ``None``, or ``(P,)`` int64 rows of the masked pixels in that map.
-        residual: ``(P,)`` weighted RMS residual of the fit.
+        coefficients: either ``(N, C, K)`` (one row per masked pixel, solver
+            order; ``pixels`` is ``None``) or the ``(H W, C, K)`` rows of the
+            output map (``H W = mask.numel()``, zero outside the mask).
+        pixels: ``None``, or ``(N,)`` int64 rows of the masked pixels in that map.
+        residual: ``(N,)`` weighted RMS residual of the fit.
     """
 
     coefficients: torch.Tensor
@@ -84,20 +84,20 @@ class Coefficients:
     residual: torch.Tensor
 
 
-def _write_map_in_place(P: int, N: int, L: int, C: int, K: int, obs_bytes: int, dt_bytes: int) -> bool:
-    """Whether writing the ``(N, C, K)`` output map directly gives a lower peak than a compact buffer.
+def _write_map_in_place(N: int, HW: int, L: int, C: int, K: int, obs_bytes: int, dt_bytes: int) -> bool:
+    """Whether writing the ``(H W, C, K)`` output map directly gives a lower peak than a compact buffer.
 
-    Compact: the stage holds ``F = P C K`` values and the result stage later
-    holds the buffer and the map together, but without the observations ``(P,
-    L, C)`` and their weights ``(P, L)`` (``obs_bytes`` per value), which it
+    Compact: the stage holds ``F = N C K`` values and the result stage later
+    holds the buffer and the map together, but without the observations ``(N,
+    L, C)`` and their weights ``(N, L)`` (``obs_bytes`` per value), which it
     releases first: extra peak ``F + max(0, Map - Y - W0)``. In place: extra
     peak ``Map`` during this stage. With many lights the observations dominate
     and the compact buffer wins (1024^2 x 96); with few lights and a large
     frame the map wins (2048^2 x 16).
     """
-    f = P * C * K * dt_bytes
-    m = N * C * K * dt_bytes
-    y = P * L * (C + 1) * obs_bytes
+    f = N * C * K * dt_bytes
+    m = HW * C * K * dt_bytes
+    y = N * L * (C + 1) * obs_bytes
     return m < f + max(0, m - y)
 
 
@@ -110,19 +110,19 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
     normals. Independent model: shrunk toward 0 with the refinement's ridge.
     """
     d = obs.data
-    P, L, C = d.y.shape
+    N, L, C = d.y.shape
     dev, dt = d.y.device, d.dtype
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
     profile = ridge_profile(cfg.order, dt, dev)
     K = profile.shape[0]
     itemsize = torch.empty(0, dtype=dt).element_size()
     pixels = None
-    if _write_map_in_place(P, d.mask.numel(), L, C, K, d.y.element_size(), itemsize):
+    if _write_map_in_place(N, d.mask.numel(), L, C, K, d.y.element_size(), itemsize):
         pixels = d.mask.reshape(-1).nonzero().squeeze(1)  # int64 rows of the masked pixels in the map
         coefs = torch.zeros(d.mask.numel(), C, K, dtype=dt, device=dev)
     else:
-        coefs = torch.empty(P, C, K, dtype=dt, device=dev)
-    resid = torch.empty(P, dtype=dt, device=dev)
+        coefs = torch.empty(N, C, K, dtype=dt, device=dev)
+    resid = torch.empty(N, dtype=dt, device=dev)
     # the safeguard's stacked designs (lights + 48 virtual lights, float64) are the largest
     # temporaries of the solve: a smaller chunk than the refinement's bounds them (on the CPU
     # a fixed one; on a GPU, where launches cost more than bytes, an eighth of the refinement's)
@@ -153,7 +153,7 @@ def fit_coefficients(obs: Observations, ref: Refinement, cfg: Settings,
     if cfg.progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=P, desc="HSH coefficients", unit="px")
+        bar = tqdm(total=N, desc="HSH coefficients", unit="px")
     with torch.no_grad():
-        for_chunks(P, step, run, shrink=cfg.chunk_auto, progress=bar)
+        for_chunks(N, step, run, shrink=cfg.chunk_auto, progress=bar)
     return Coefficients(coefficients=coefs, pixels=pixels, residual=resid)

@@ -1,7 +1,7 @@
 """Stage 2 of the HSH solver: the start normals.
 
 Takes the :class:`~torch_hsh.ps.observations.Observations` and optional
-user normals ``init (*S, 3)``; returns ``(P, 3)`` unit start normals: the
+user normals ``init (*S, 3)``; returns ``(N, 3)`` unit start normals: the
 robust (trimmed) Lambertian solution by default, always tilted in front of the
 camera (``n_z >= 0.05`` before normalisation).
 """
@@ -20,21 +20,21 @@ __all__ = ["initial_normals"]
 
 
 def initial_normals(obs: Observations, cfg: Settings) -> torch.Tensor:
-    """Start normals ``(P, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``cfg.init``.
+    """Start normals ``(N, 3)``: robust Lambertian (25 % darkest, 10 % brightest dropped) or ``cfg.init``.
 
     ``cfg.progress``: a tqdm bar over the pixels of the Lambertian solve (like the later stages)."""
     init, progress = cfg.init, cfg.progress
     d = obs.data
     dev, dt = d.y.device, d.dtype
     if init is None:
-        P = d.y.shape[0]
-        n_start = torch.empty(P, 3, dtype=dt, device=dev)
+        N = d.y.shape[0]
+        n_start = torch.empty(N, 3, dtype=dt, device=dev)
         bar = None
         if progress:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=P, desc="HSH start normals (robust Lambertian)", unit="px")
-        for s in range(0, P, _CHUNK):
+            bar = tqdm(total=N, desc="HSH start normals (robust Lambertian)", unit="px")
+        for s in range(0, N, _CHUNK):
             y = d.y[s : s + _CHUNK].to(dt)
             n_start[s : s + _CHUNK], _ = _solve_flat(y, d.lights, trimmed_weights(y, 0.25, 0.10))
             if bar is not None:

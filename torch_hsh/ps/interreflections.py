@@ -99,7 +99,7 @@ def one_bounce(
     stride: int = 2,
     near: Optional[int] = NEAR_RADIUS,
     occlusion: bool = False,
-    light_chunk: int = 16,
+    chunk_size: int = 16,
 ) -> torch.Tensor:
     """One bounce of interreflection under every light (see the module docstring for the model).
 
@@ -122,7 +122,7 @@ def one_bounce(
             segment from ``p`` to ``q`` crosses (one per step along its longer axis, at most
             :data:`MAX_OCCLUSION_SAMPLES`) must not rise above the segment by more than half a pixel.
             Pixels outside the mask do not occlude.
-        light_chunk: lights per pass (memory: about ``3 * light_chunk * H * W * C`` values besides the
+        chunk_size: lights per pass (memory: about ``3 * chunk_size * H * W * C`` values besides the
             output; the form factors are recomputed per pass, one ``(H, W)`` map at a time).
 
     Non-finite image values (missing observations) emit nothing. Integer and half-precision images are
@@ -153,8 +153,8 @@ def one_bounce(
         raise ValueError(f"`stride` must be an integer in [1, radius], got {stride!r}")
     if near is not None and (isinstance(near, bool) or int(near) != near or near < 1):
         raise ValueError(f"`near` must be None or an integer >= 1, got {near!r}")
-    if isinstance(light_chunk, bool) or int(light_chunk) != light_chunk or light_chunk < 1:
-        raise ValueError(f"`light_chunk` must be an integer >= 1, got {light_chunk!r}")
+    if isinstance(chunk_size, bool) or int(chunk_size) != chunk_size or chunk_size < 1:
+        raise ValueError(f"`chunk_size` must be an integer >= 1, got {chunk_size!r}")
     dev = images.device
     dt = images.dtype if images.dtype in (torch.float32, torch.float64) else torch.float32  # ints, half: float32
     m = mask.to(dev).bool() & torch.isfinite(depth.to(dev))
@@ -191,8 +191,8 @@ def one_bounce(
 
     out = torch.zeros(images.shape, device=dev, dtype=dt)
     alb = albedo.to(dev, dt)
-    for l0 in range(0, L, light_chunk):  # memory: the chunk's padded source and sum, one factor map at a time
-        img = images[l0:l0 + light_chunk].to(dt)
+    for l0 in range(0, L, chunk_size):  # memory: the chunk's padded source and sum, one factor map at a time
+        img = images[l0:l0 + chunk_size].to(dt)
         img = torch.where(m[None, ..., None] & torch.isfinite(img), img, zero)  # missing observations emit nothing
         k = img.shape[0]
         src = torch.nn.functional.pad(img.permute(1, 2, 0, 3).reshape(H, W, k * C).permute(2, 0, 1), pad)

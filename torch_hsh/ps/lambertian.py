@@ -4,7 +4,7 @@ Model: ``I_jc / e_jc = (rho_c / pi) max(0, n . l_j)`` (the renderer's convention
 ``f = rho / pi``). Channels are averaged (after dividing by the light
 intensities) to estimate the scaled normal ``b = (rho / pi) n`` by least
 squares (Woodham 1980); the per-channel albedo is then fitted with the normal
-fixed. Both solvers are batched over pixels (``(P, 3, 3)`` normal equations).
+fixed. Both solvers are batched over pixels (``(N, 3, 3)`` normal equations).
 
 * :func:`lambertian_ls` uses every observation.
 * :func:`robust_lambertian` trims, per pixel, the darkest ``drop_dark``
@@ -41,8 +41,8 @@ class LambertianResult:
 
 
 def _solve_flat(y: torch.Tensor, lights: torch.Tensor, w: Optional[torch.Tensor]):
-    """Weighted Lambertian LS. ``y (P, L, C)``, ``lights (L, 3)``, ``w (P, L)`` -> normals (P, 3), albedo (P, C)."""
-    g = y.mean(-1)  # (P, L)
+    """Weighted Lambertian LS. ``y (N, L, C)``, ``lights (L, 3)``, ``w (N, L)`` -> normals (N, 3), albedo (N, C)."""
+    g = y.mean(-1)  # (N, L)
     g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
     if w is None:
         w = torch.ones_like(g)
@@ -55,7 +55,7 @@ def _solve_flat(y: torch.Tensor, lights: torch.Tensor, w: Optional[torch.Tensor]
     default = torch.zeros_like(b)
     default[:, 2] = 1.0
     n = torch.where(nb > 0, b / nb.clamp(min=1e-30), default)
-    shade = (lights @ n.T).T.clamp(min=0.0)  # (P, L)
+    shade = (lights @ n.T).T.clamp(min=0.0)  # (N, L)
     ws = w * shade
     yy = torch.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0)
     num = torch.einsum("pl,plc->pc", ws, yy)
@@ -67,12 +67,12 @@ def trimmed_weights(y: torch.Tensor, drop_dark: float = 0.25, drop_bright: float
     """Per-pixel 0/1 weights keeping the observations between two rank quantiles.
 
     Args:
-        y: ``(P, L, C)`` observations.
+        y: ``(N, L, C)`` observations.
         drop_dark: fraction of darkest observations dropped per pixel, in ``[0, 1)``.
         drop_bright: fraction of brightest observations dropped, ``drop_dark + drop_bright < 1``.
 
     Returns:
-        ``(P, L)`` weights (at least 3 observations kept per pixel).
+        ``(N, L)`` weights (at least 3 observations kept per pixel).
 
     Example:
         >>> trimmed_weights(torch.arange(8.0).reshape(1, 8, 1), 0.25, 0.25)
@@ -82,7 +82,7 @@ def trimmed_weights(y: torch.Tensor, drop_dark: float = 0.25, drop_bright: float
         raise ValueError(
             f"need 0 <= drop_dark, drop_bright and drop_dark + drop_bright < 1, got {drop_dark}, {drop_bright}"
         )
-    P, L, _ = y.shape
+    N, L, _ = y.shape
     g = torch.nan_to_num(y.mean(-1), nan=-float("inf"))
     lo = int(math.floor(drop_dark * L))
     hi = L - int(math.floor(drop_bright * L))
@@ -101,10 +101,10 @@ def lambertian_ls(
     """Woodham's least-squares Lambertian photometric stereo, batched over pixels.
 
     Args:
-        images: ``(L, H, W, C)`` or ``(L, P, C)`` images (trailing channel axis).
+        images: ``(L, H, W, C)`` or ``(L, N, C)`` images (trailing channel axis).
         lights: ``(L, 3)`` directions toward the lights.
         intensities: ``None``, ``(L,)`` or ``(L, C)``; images are divided by them.
-        mask: optional ``(H, W)`` / ``(P,)`` bool mask of the pixels to solve.
+        mask: optional ``(H, W)`` / ``(N,)`` bool mask of the pixels to solve.
 
     Returns:
         :class:`LambertianResult` with ``normals (*S, 3)`` and ``albedo (*S, C)``.

@@ -195,7 +195,7 @@ def select_materials(obs: Observations, n_start: torch.Tensor, cfg: Settings,
                      candidates: Tuple[int, ...] = AUTO_CANDIDATES) -> MaterialsSelection:
     """Choose the number of shared basis BRDFs by held-out-light cross-validation (see the module docstring).
 
-    ``n_start (P, 3)`` are the stage-2 normals. Runs in the work dtype of the
+    ``n_start (N, 3)`` are the stage-2 normals. Runs in the work dtype of the
     settings; writes nothing into ``obs.info`` (the caller copies
     :meth:`MaterialsSelection.info`).
 

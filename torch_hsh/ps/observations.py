@@ -2,9 +2,9 @@
 
 Takes ``images (L, *S, C)``, ``lights (L, 3)``, optional ``intensities`` and
 ``mask``; returns an :class:`Observations` state: the pixels inside the mask
-flattened to ``(P, L, C)`` (divided by the light intensities, and raw), the
+flattened to ``(N, L, C)`` (divided by the light intensities, and raw), the
 unit lights, the temporal noise sample of the dark background, and the
-``(P, L)`` observation weights in {0, 1} from adaptive noise, saturation and
+``(N, L)`` observation weights in {0, 1} from adaptive noise, saturation and
 shadow thresholds (:func:`observation_weights`), with the noise level in the
 units of the normalised observations.
 
@@ -33,11 +33,11 @@ class PSInput:
     """Flattened photometric-stereo data.
 
     Attributes:
-        y: ``(P, L, C)`` observations divided by the light intensities (only
+        y: ``(N, L, C)`` observations divided by the light intensities (only
             pixels inside the mask), in the *storage* dtype: float32 for float32
             (or lower-precision / integer) images, else ``dtype``. Invalid
             observations (non-finite, negative, or excluded by the caller) are 0.
-        valid: ``(P, L)`` bool, False for the invalid observations.
+        valid: ``(N, L)`` bool, False for the invalid observations.
         lights: ``(L, 3)`` unit light directions, in ``dtype``.
         intensities: ``(L, C)``, in ``dtype``.
         mask: ``(*S)`` bool mask of the pixels in ``y``.
@@ -101,7 +101,7 @@ def check_inputs(images, lights, intensities=None, mask=None, valid=None, min_li
     check_tensor(images, "images", allow_nonfinite=True)
     if images.dim() < 3:  # any pixel shape S: a rank check, not a fixed pattern
         raise ValueError(
-            f"`images` must have shape (L, H, W, C) or (L, P, C) (a trailing channel axis, C = 1 or 3), "
+            f"`images` must have shape (L, H, W, C) or (L, N, C) (a trailing channel axis, C = 1 or 3), "
             f"got {tuple(images.shape)}"
         )
     L, S, C = images.shape[0], tuple(images.shape[1:-1]), images.shape[-1]
@@ -112,7 +112,7 @@ def check_inputs(images, lights, intensities=None, mask=None, valid=None, min_li
                 if where else "")
         raise ValueError(
             f"`lights` has {lights.shape[0]} rows but `images` {tuple(images.shape)} has {L} along its first axis, "
-            f"the lights axis of the (L, H, W, C) or (L, P, C) layout: the counts disagree{hint}"
+            f"the lights axis of the (L, H, W, C) or (L, N, C) layout: the counts disagree{hint}"
         )
     if isinstance(mask, torch.Tensor) and tuple(mask.shape) == tuple(images.shape[1:]):
         raise ValueError(
@@ -150,7 +150,7 @@ def prepare_inputs(
     """Validate and flatten ``images (L, *S, C)``, ``lights (L, 3)``, ``intensities``, ``mask (*S)``, ``valid (L, *S)``.
 
     Memory: the pixels inside the mask are gathered one image at a time into
-    one ``(P, L, C)`` buffer of the storage dtype (see :class:`PSInput`); the
+    one ``(N, L, C)`` buffer of the storage dtype (see :class:`PSInput`); the
     input stack is never converted as a whole.
     """
     L = check_inputs(images, lights, intensities, mask, valid, min_lights)["L"]
@@ -180,9 +180,9 @@ def prepare_inputs(
     flat = images.reshape(L, -1, C)
     m = mask_t.reshape(-1)
     idx = m.nonzero().squeeze(1)  # int64 pixel indices
-    P = idx.numel()
-    y = torch.empty(P, L, C, dtype=store, device=dev)
-    ok = torch.empty(P, L, dtype=torch.bool, device=dev)
+    N = idx.numel()
+    y = torch.empty(N, L, C, dtype=store, device=dev)
+    ok = torch.empty(N, L, dtype=torch.bool, device=dev)
     e_store = e.to(store)
     for j in range(L):  # one image at a time: no full-stack temporaries
         v = flat[j].index_select(0, idx).to(store)
@@ -241,12 +241,12 @@ def strided_sample(x: torch.Tensor, n: int) -> torch.Tensor:
 
 
 def row_quantile(x: torch.Tensor, q: float) -> torch.Tensor:
-    """``torch.quantile(x, q, dim=1, keepdim=True)`` for ``x (P, L)`` of any size (row chunks below 2**24 elements)."""
-    P, L = x.shape
+    """``torch.quantile(x, q, dim=1, keepdim=True)`` for ``x (N, L)`` of any size (row chunks below 2**24 elements)."""
+    N, L = x.shape
     rows = max(1, QUANTILE_MAX_ELEMENTS // max(L, 1))
-    if P <= rows:
+    if N <= rows:
         return torch.quantile(x, q, dim=1, keepdim=True)
-    return torch.cat([torch.quantile(x[s : s + rows], q, dim=1, keepdim=True) for s in range(0, P, rows)])
+    return torch.cat([torch.quantile(x[s : s + rows], q, dim=1, keepdim=True) for s in range(0, N, rows)])
 
 
 def robust_sigma(x: torch.Tensor) -> float:
@@ -273,11 +273,11 @@ def observation_weights(
     noise_sigma: Optional[float] = None,
     saturation: Optional[float] = None,
 ):
-    """Weights ``(P, L)`` in {0, 1} from validity and adaptive dark / saturation thresholds.
+    """Weights ``(N, L)`` in {0, 1} from validity and adaptive dark / saturation thresholds.
 
     Args:
-        y: ``(P, L, C)`` observations divided by the light intensities.
-        raw: ``(P, L, C)`` raw observations (same values before the division).
+        y: ``(N, L, C)`` observations divided by the light intensities.
+        raw: ``(N, L, C)`` raw observations (same values before the division).
         background: ``(Q, C)`` temporal deviations of background pixels, used for
             the robust noise estimate ``sigma = 1.4826 MAD`` (ignored if fewer than
             64 pixels or if ``noise_sigma`` is given).
@@ -294,7 +294,7 @@ def observation_weights(
     and do not enter any statistic.
 
     Returns:
-        ``(weights (P, L), info dict)``.
+        ``(weights (N, L), info dict)``.
 
     Raises:
         ValueError: ``dark_fraction`` outside ``[0, 1)``, a negative or
@@ -356,10 +356,10 @@ class Observations:
     """State after stage 1: the data every later stage reads.
 
     Attributes:
-        data: :class:`PSInput` (``y (P, L, C)`` divided by the light intensities
+        data: :class:`PSInput` (``y (N, L, C)`` divided by the light intensities
             *and by* ``scale``, ``valid``, ``lights (L, 3)``, ``intensities (L,
             C)``, ``mask``, ``pixel_shape``, ``background``, ``dtype``).
-        weights: ``(P, L)`` observation weights in {0, 1} (0: invalid,
+        weights: ``(N, L)`` observation weights in {0, 1} (0: invalid,
             saturated or dark), in the storage dtype of ``data.y``.
         sigma_y: noise level in the units of ``data.y``.
         scale: the global scale divided out of ``data.y`` (a power of two near
@@ -396,9 +396,9 @@ def observe(
     """
     noise_sigma, saturation = cfg.noise_sigma, cfg.saturation
     d = prepare_inputs(images, lights, intensities, mask, min_lights=3, dtype=cfg.dtype, valid=cfg.valid)
-    P, L, C = d.y.shape
+    N, L, C = d.y.shape
     e = d.intensities.to(d.y.dtype).unsqueeze(0)  # (1, L, C)
-    chunks = [slice(s, min(P, s + _CHUNK)) for s in range(0, P, _CHUNK)]
+    chunks = [slice(s, min(N, s + _CHUNK)) for s in range(0, N, _CHUNK)]
     if saturation is None:
         mx = max(float((d.y[sl] * e).max()) for sl in chunks)
         near = sum(int((d.y[sl] * e >= mx * (1 - 1e-3)).sum()) for sl in chunks) if mx > 0 else 0
@@ -408,7 +408,7 @@ def observe(
         bg = d.background
         if bg.shape[0] >= 64:
             noise_sigma = robust_sigma(bg[torch.isfinite(bg).all(-1)])
-    w0 = torch.empty(P, L, dtype=d.y.dtype, device=d.y.device)
+    w0 = torch.empty(N, L, dtype=d.y.dtype, device=d.y.device)
     n_sat = n_dark = 0
     for sl in chunks:
         w, inf = observation_weights(d.y[sl], d.y[sl] * e, None, cfg.dark_fraction, noise_sigma, saturation)
@@ -420,14 +420,14 @@ def observe(
         info["saturation_level"] = float(saturation)
     info["noise_sigma"] = float(noise_sigma)
     info["noise_background_pixels"] = float(d.background.shape[0] // max(L, 1))
-    info["saturated_fraction"] = n_sat / max(P * L, 1)
-    info["dark_fraction"] = n_dark / max(P * L, 1)
-    info["invalid_fraction"] = (P * L - int(row_sum(d.valid).sum())) / max(P * L, 1)  # no (P, L) negation
+    info["saturated_fraction"] = n_sat / max(N * L, 1)
+    info["dark_fraction"] = n_dark / max(N * L, 1)
+    info["invalid_fraction"] = (N * L - int(row_sum(d.valid).sum())) / max(N * L, 1)  # no (N, L) negation
     info["underdetermined_pixels"] = int((w0.sum(-1) < 3).sum())
     if cfg.noise_sigma is None and noise_sigma > 0:
         _warn_bright_background(d, e, chunks, noise_sigma, info["dark_fraction"])
     # global scale: a power of two near the median valid observation (exact division)
-    # (sampled chunk by chunk: a full (P, L) channel mean would be the largest temporary of the solve)
+    # (sampled chunk by chunk: a full (N, L) channel mean would be the largest temporary of the solve)
     per = max(1, 2_000_000 // max(len(chunks), 1))
     parts = [strided_sample(d.y[sl].mean(-1)[w0[sl] > 0], per) for sl in chunks]
     g = torch.cat(parts) if parts and sum(p.numel() for p in parts) > 0 else d.y.new_ones(1)

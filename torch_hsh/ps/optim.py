@@ -28,6 +28,11 @@ import torch
 from ._geometry import tangent_frame
 from .design import MixedDesign, _design_factors
 
+__all__ = [
+    "small_solve", "safe_cholesky", "combine", "solve_weights", "fd_step", "cauchy_weights", "cauchy_rho",
+    "observation_residual", "irls_weights", "reduced_cost", "lm_normals", "active_rows", "lm_accept",
+    "PixelProblem", "lm_independent", "cone_search", "robust_coefficient_weights",
+]
 
 
 def small_solve(G: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:

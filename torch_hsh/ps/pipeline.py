@@ -23,18 +23,7 @@ Two models (see ``docs/photometric_stereo.md``):
 :func:`solve_hsh` is a pipeline of six stages, each in its own module, with
 small state objects between them (data flows one way):
 
-=====  ====================================  ==================  =====================================
-stage  module                                returns             what it does
-=====  ====================================  ==================  =====================================
-1      :mod:`~torch_hsh.ps.observations`     ``Observations``    flatten, normalise, noise / saturation / shadow weights
-2      :mod:`~torch_hsh.ps.initialisation`   ``(P, 3)`` normals  robust Lambertian start
-3a     :mod:`~torch_hsh.ps.materials`        ``M``, criterion    ``materials="auto"``: ``M`` by held-out-light cross-validation
-3      :mod:`~torch_hsh.ps.calibration`      ``Calibration``     shared basis BRDFs on a pixel subset (shared model)
-4      :mod:`~torch_hsh.ps.refinement`       ``Refinement``      per-pixel normals (and mixing weights), in chunks
-5      :mod:`~torch_hsh.ps.coefficients`     ``Coefficients``    final coefficients, non-negativity safeguard
-6      :mod:`~torch_hsh.ps.result`           ``HSHResult``       maps, albedo, relighting, holdout evaluation
-=====  ====================================  ==================  =====================================
-
+=====  ====================================  ==================  ==============================
 Around the stages, all opt-in: the cast-shadow loop (:mod:`.shadows`), the removal of one
 bounce of interreflection (:mod:`.interreflections`) and the whole-surface stage
 (:mod:`.whole_surface`), in that order. The whole-surface stage brings one (safeguarded) round
@@ -105,10 +94,10 @@ def solve_hsh(
       the normal is then set by the ridge, not by the data.
 
     Args:
-        images: ``(L, H, W, C)`` or ``(L, P, C)`` linear images (trailing channel axis).
+        images: ``(L, H, W, C)`` or ``(L, N, C)`` linear images (trailing channel axis).
         lights: ``(L, 3)`` directions toward the lights (DiLiGenT frame).
         intensities: ``None``, ``(L,)`` or ``(L, C)`` light intensities (images are divided by them).
-        mask: ``(H, W)`` / ``(P,)`` bool object mask (default: every pixel).
+        mask: ``(H, W)`` / ``(N,)`` bool object mask (default: every pixel).
         settings: a :class:`~torch_hsh.ps.Settings` with the options below
             (default: every option at its default).
         **overrides: options by name, applied on top of ``settings``
@@ -214,7 +203,7 @@ def _refinement(obs, n_start, cfg: Settings, basis, scale):
         iters = ref.iterations
         for _ in range(1, cfg.refinement_passes):  # restart from the refined normals (fresh robust weights, cone search)
             n_prev = ref.normals
-            ref.weights = ref.weights.new_empty(0)  # release the (P, L) weights before the next pass allocates its own
+            ref.weights = ref.weights.new_empty(0)  # release the (N, L) weights before the next pass allocates its own
             ref = refine(obs, n_prev, cfg, basis, scale)
             iters += ref.iterations
         ref.iterations = iters
@@ -297,7 +286,7 @@ def _result(obs, n_init, ref, fit, cal, cfg, t_start) -> HSHResult:
     weights_map = scatter_pixels(ref.weights, d.mask)
     ref.weights = ref.weights.new_empty(0)
     s = obs.scale  # the solver ran at unit brightness: coefficients are linear in the images
-    # the coefficients are either compact (P, C, K) rows or the map's rows, written in place by stage 5
+    # the coefficients are either compact (N, C, K) rows or the map's rows, written in place by stage 5
     coef_rows = fit.coefficients.mul_(s)
     pix = fit.pixels
     albedo = coef_rows.new_empty(normals.shape[0], coef_rows.shape[1])

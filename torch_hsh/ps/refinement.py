@@ -122,13 +122,13 @@ class Refinement:
     """State after stage 4.
 
     Attributes:
-        normals: ``(P, 3)`` unit normals.
-        weights: ``(P, L)`` final robust weights of the normal estimation.
-        fit_weights: ``(P, L)`` weights of the final coefficient fit: the
+        normals: ``(N, 3)`` unit normals.
+        weights: ``(N, L)`` final robust weights of the normal estimation.
+        fit_weights: ``(N, L)`` weights of the final coefficient fit: the
             observation weights for the shared model (the coefficients fit every
             valid observation), the robust weights for the independent model.
-        mixing: shared model: ``(P, M, C)`` mixing weights; else ``None``.
-        ridge_diag: independent model: ``(P, K)`` per-pixel ridge; else ``None``.
+        mixing: shared model: ``(N, M, C)`` mixing weights; else ``None``.
+        ridge_diag: independent model: ``(N, K)`` per-pixel ridge; else ``None``.
         iterations: LM iterations summed over the chunks.
         moved: number of pixels whose normal left its start.
         chunks: number of chunks processed.
@@ -152,21 +152,21 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
     model); with ``basis=None`` the independent model runs.
     """
     d, w0 = obs.data, obs.weights
-    P, L, C = d.y.shape
+    N, L, C = d.y.shape
     dev, dt = d.y.device, d.dtype
     wdt = cfg.work(dt)
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
     profile = ridge_profile(cfg.order, dt, dev)
     shared = basis is not None
-    normals = torch.empty(P, 3, dtype=dt, device=dev)
-    wfin = torch.empty(P, L, dtype=d.y.dtype, device=dev)  # storage dtype: weights need no float64
-    mixing = torch.empty(P, basis.shape[0], C, dtype=dt, device=dev) if basis is not None else None
-    ridge_diag = None if shared else torch.empty(P, profile.shape[0], dtype=dt, device=dev)
+    normals = torch.empty(N, 3, dtype=dt, device=dev)
+    wfin = torch.empty(N, L, dtype=d.y.dtype, device=dev)  # storage dtype: weights need no float64
+    mixing = torch.empty(N, basis.shape[0], C, dtype=dt, device=dev) if basis is not None else None
+    ridge_diag = None if shared else torch.empty(N, profile.shape[0], dtype=dt, device=dev)
     bar = None
     if cfg.progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=P, desc="HSH photometric stereo", unit="px")
+        bar = tqdm(total=N, desc="HSH photometric stereo", unit="px")
     acc = {"iters": 0, "moved": 0}
 
     def run(sl: slice) -> None:
@@ -192,7 +192,7 @@ def refine(obs: Observations, n_start: torch.Tensor, cfg: Settings, basis: Optio
         acc["moved"] += int(((n_start[sl] - n).norm(dim=-1) > 1e-6).sum())
 
     with torch.no_grad():
-        chunks, _ = for_chunks(P, cfg.chunk, run, shrink=cfg.chunk_auto, progress=bar)
+        chunks, _ = for_chunks(N, cfg.chunk, run, shrink=cfg.chunk_auto, progress=bar)
     total_iters, moved = acc["iters"], acc["moved"]
     return Refinement(
         normals=normals, weights=wfin, fit_weights=w0 if shared else wfin, mixing=mixing, ridge_diag=ridge_diag,

@@ -72,7 +72,7 @@ class HSHResult:
     confidence: Optional[torch.Tensor] = None
     depth: Optional[torch.Tensor] = None
 
-    def save(self, path, channels: Optional[Sequence[str]] = None, weights: bool = False,
+    def write(self, path, channels: Optional[Sequence[str]] = None, weights: bool = False,
              overwrite: bool = False) -> None:
         """Write the result to one ``.npz`` file with a versioned JSON metadata entry.
 
@@ -90,8 +90,8 @@ class HSHResult:
             overwrite: replace an existing file (default: refuse).
 
         Example:
-            >>> res.save("bunny_result.npz")  # doctest: +SKIP
-            >>> HSHResult.load("bunny_result.npz").normals.shape  # doctest: +SKIP
+            >>> res.write("bunny_result.npz")  # doctest: +SKIP
+            >>> HSHResult.read("bunny_result.npz").normals.shape  # doctest: +SKIP
             torch.Size([256, 256, 3])
         """
         import json
@@ -133,8 +133,8 @@ class HSHResult:
         tmp.replace(p)
 
     @classmethod
-    def load(cls, path, device=None) -> "HSHResult":
-        """Read a result written by :meth:`save` (``weights`` is ``(*S, 0)`` if it was not stored).
+    def read(cls, path, device=None) -> "HSHResult":
+        """Read a result written by :meth:`write` (``weights`` is ``(*S, 0)`` if it was not stored).
 
         Raises:
             FileNotFoundError: missing file.
@@ -216,7 +216,7 @@ class HoldoutResult:
 
 
 def _albedo_vector(order: int, cos_o: torch.Tensor) -> torch.Tensor:
-    """``D_k(cos_o) = integral of B_k(wi, wo) cos(theta_i) dwi`` for every isotropic function, ``(P, K)``.
+    """``D_k(cos_o) = integral of B_k(wi, wo) cos(theta_i) dwi`` for every isotropic function, ``(N, K)``.
 
     The terms are :func:`torch_hsh.bases.helmholtz.albedo_terms`; they are evaluated here on the solver's
     polar table (not the HSH of ``fitting.directional_albedo``) and summed per column, which keeps this
@@ -274,7 +274,7 @@ def directional_albedo_view(coefficients: torch.Tensor, cos_o: torch.Tensor) -> 
 def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, order: int, c: float) -> torch.Tensor:
     """Per-pixel confidence in ``[0, 1]``: enough inliers, times a fit at the noise level.
 
-    ``weights (P, L)`` robust weights, ``residual (P,)`` weighted RMS residual,
+    ``weights (N, L)`` robust weights, ``residual (N,)`` weighted RMS residual,
     ``scale`` the robust residual scale of the solve. Two factors:
 
     * coverage ``clamp((n_eff - 3) / (U - 3), 0, 1)`` with ``n_eff`` the sum of
@@ -291,16 +291,3 @@ def confidence(weights: torch.Tensor, residual: torch.Tensor, scale: float, orde
     fit = 1.0 / (1.0 + (residual / (c * sc)) ** 2)
     out = cover * fit
     return torch.where(torch.isfinite(out), out, torch.zeros_like(out))
-
-
-def __getattr__(name):
-    # deprecated alias: holdout_evaluation sits above the pipeline (torch_hsh.ps.evaluation), which imports
-    # this module; importing it from here by name at call time keeps this module free of that cycle
-    if name == "holdout_evaluation":
-        import importlib
-        import warnings
-
-        warnings.warn("torch_hsh.ps.result.holdout_evaluation is deprecated: use torch_hsh.ps.holdout_evaluation "
-                      "(torch_hsh.ps.evaluation)", DeprecationWarning, stacklevel=2)
-        return importlib.import_module(f"{__package__}.evaluation").holdout_evaluation
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -342,7 +342,7 @@ class Settings:
         None, "raw saturation level (``None``: detected), see :func:`~torch_hsh.ps.observation_weights`.",
         check_saturation)
     nonneg: bool = _option(True, "apply the non-negativity safeguard to the final coefficients.")
-    chunk_size: Optional[int] = _option(None, """pixels per batch of the per-pixel passes (bounded memory).
+    chunk_size: Optional[int] = _option(None, """pixels per chunk of the per-pixel passes (bounded memory).
         ``None`` (default): 8192 on the CPU; on a GPU, where fewer and
         larger batches are faster, the largest that keeps a batch within a
         quarter of the free device memory (8192 to 262144, see
@@ -357,7 +357,7 @@ class Settings:
     seed: int = _option(0, "seed of the calibration subset.")
     progress: bool = _option(False, """show tqdm progress bars (the robust Lambertian start normals, the
         calibration starts, the refinement's and the coefficient fit's chunks of pixels).""")
-    valid: Optional[torch.Tensor] = _option(None, """optional ``(L, H, W)`` / ``(L, P)`` bool: False excludes an
+    valid: Optional[torch.Tensor] = _option(None, """optional ``(L, H, W)`` / ``(L, N)`` bool: False excludes an
         observation (for example one known to be in a cast shadow). Non-finite
         and negative observations are always excluded; an excluded
         observation never influences another pixel.""", compare=False)
@@ -468,7 +468,7 @@ class Settings:
         return dtype if self.work_dtype is None else self.work_dtype
 
     def chunked(self, y: torch.Tensor, dtype: torch.dtype) -> "Settings":
-        """These settings with ``chunk_size`` resolved for the observations ``y (P, L, C)`` computed in ``dtype``
+        """These settings with ``chunk_size`` resolved for the observations ``y (N, L, C)`` computed in ``dtype``
         (:func:`resolve_chunk`; ``chunk_auto`` records whether it was chosen here)."""
         from ..kernel import num_isotropic
 

@@ -116,7 +116,7 @@ class _Depth:
     Dh: torch.Tensor
     Dw: torch.Tensor
     S: torch.Tensor
-    rows: torch.Tensor  # (P,) flat indices of the masked pixels in the crop, in the solver's pixel order
+    rows: torch.Tensor  # (N,) flat indices of the masked pixels in the crop, in the solver's pixel order
 
     @classmethod
     def start(cls, normals: torch.Tensor, mask: torch.Tensor, dtype, method: str = _START_METHOD) -> "_Depth":
@@ -213,7 +213,7 @@ def depth_normals(z: torch.Tensor, m: torch.Tensor, weights: Tuple[torch.Tensor,
 # --------------------------------------------------------------------------- #
 @dataclasses.dataclass
 class _Data:
-    """The observations of the stage: ``y (P, C, L)``, weights ``w0 (P, L)``, the design, the robust scale."""
+    """The observations of the stage: ``y (N, C, L)``, weights ``w0 (N, L)``, the design, the robust scale."""
 
     y: torch.Tensor
     w0: torch.Tensor
@@ -224,8 +224,8 @@ class _Data:
     basis: torch.Tensor  # (M, K) the shared basis BRDFs of ``design`` (the solve's)
 
 
-def _chunks(P: int):
-    return [slice(s, min(P, s + _CHUNK)) for s in range(0, P, _CHUNK)]
+def _chunks(N: int):
+    return [slice(s, min(N, s + _CHUNK)) for s in range(0, N, _CHUNK)]
 
 
 def _fit_chunks(data: _Data, n: torch.Tensor, w: torch.Tensor, rows: Optional[torch.Tensor] = None):
@@ -242,7 +242,7 @@ def _fit_chunks(data: _Data, n: torch.Tensor, w: torch.Tensor, rows: Optional[to
 
 
 def _mixing(data: _Data, n: torch.Tensor, w: torch.Tensor):
-    """Mixing weights ``(P, M, C)`` and robust weights ``(P, L)`` of every pixel at normals ``n`` (:func:`_fit_chunks`)."""
+    """Mixing weights ``(N, M, C)`` and robust weights ``(N, L)`` of every pixel at normals ``n`` (:func:`_fit_chunks`)."""
     fits = [(W, wr) for _, W, wr, _ in _fit_chunks(data, n, w)]
     return torch.cat([f[0] for f in fits]), torch.cat([f[1] for f in fits])
 
@@ -328,7 +328,7 @@ def _holdout_lights(L: int, holdout: float, seed: int, device) -> torch.Tensor:
 
 
 def _visibility(dep: _Depth, z: torch.Tensor, lights: torch.Tensor, bias: float) -> torch.Tensor:
-    """``(P, L)`` visibility of every light from the depth (crop), in the solver's pixel order."""
+    """``(N, L)`` visibility of every light from the depth (crop), in the solver's pixel order."""
     from ..surface import light_visibility
 
     vis = light_visibility(z.detach().to(torch.float64).cpu(), dep.m.cpu(), lights.detach().to(torch.float64).cpu(),
@@ -430,8 +430,8 @@ def _run_rounds(data: _Data, dep: _Depth, n_start: torch.Tensor, lights: torch.T
         w = data.w0 * fit_lights
         return w if v is None else w * v.to(w.dtype)
 
-    P = n_start.shape[0]
-    sub = torch.arange(0, P, max(1, -(-P // _HOLDOUT_PIXELS)), device=n_start.device)
+    N = n_start.shape[0]
+    sub = torch.arange(0, N, max(1, -(-N // _HOLDOUT_PIXELS)), device=n_start.device)
     w_start = weights(vis)
     before = _heldout_error(data, _holdout_start(data, n_start, w_start, sub, lights, cfg), w_start[sub], sub)
     c = torch.zeros_like(dep.z0)

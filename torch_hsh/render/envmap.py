@@ -767,7 +767,7 @@ def render_envmap_reference(
     brdf: Union[torch.Tensor, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]],
     env: EnvironmentMap,
     supersample: int = 1,
-    chunk_elements: int = 2 ** 22,
+    chunk_size: int = 2 ** 22,
 ) -> torch.Tensor:
     r"""Brute-force texel quadrature of the environment-lit radiance (ground truth).
 
@@ -785,7 +785,8 @@ def render_envmap_reference(
             (an analytic model of :mod:`torch_hsh.brdf`).
         env: the map (``C`` or 1 channels).
         supersample: sub-texels per texel side.
-        chunk_elements: memory knob (texels x pixels x K per chunk).
+        chunk_size: values per chunk, a memory knob: a chunk holds about ``chunk_size`` values
+            (texels x pixels x K), i.e. ``chunk_size // (pixels x K)`` texels.
 
     Returns:
         ``(*S, C)`` radiance toward the camera.
@@ -822,7 +823,7 @@ def render_envmap_reference(
     keep = (data.detach().reshape(-1, C) != 0).any(-1)
     dirs, w = dirs[keep], w[keep]
     npix = max(1, int(np.prod(S)) if len(S) else 1)
-    step = max(1, int(chunk_elements // (npix * width)))
+    step = max(1, int(chunk_size // (npix * width)))
     out = None
     for s in range(0, dirs.shape[0], step):
         f = brdf_cosine(normals, dirs[s : s + step], brdf)  # (T, *S, C')
@@ -866,15 +867,16 @@ class EnvironmentLighting(torch.nn.Module):
         if isinstance(lighting, EnvironmentMap):
             if light_order is None:
                 raise ValueError("`light_order` is required when `lighting` is an EnvironmentMap")
-            coeffs = lighting.sh_coefficients(light_order)
+            coefficients = lighting.sh_coefficients(light_order)
         else:
-            coeffs, _ = _lighting_coefficients(lighting, light_order, lighting if isinstance(lighting, torch.Tensor) else None)
-        coeffs = coeffs.detach().clone()
+            tensor = lighting if isinstance(lighting, torch.Tensor) else None
+            coefficients, _ = _lighting_coefficients(lighting, light_order, tensor)
+        coefficients = coefficients.detach().clone()
         if learnable:
-            self.coefficients = torch.nn.Parameter(coeffs)
+            self.coefficients = torch.nn.Parameter(coefficients)
         else:
-            self.register_buffer("coefficients", coeffs)
-        self.light_order = _sh_order(coeffs.shape[-1], "lighting")
+            self.register_buffer("coefficients", coefficients)
+        self.light_order = _sh_order(coefficients.shape[-1], "lighting")
 
     def forward(self, normals: torch.Tensor, brdf: torch.Tensor) -> torch.Tensor:
         return render_envmap(normals, brdf, self.coefficients)

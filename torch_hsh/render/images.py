@@ -18,7 +18,7 @@ A BRDF is either
 
 * a tensor of **coefficient maps** in the isotropic Helmholtz basis
   (:func:`torch_hsh.helmholtz_isotropic_world`), shape ``(*S, C, K)`` with
-  ``S`` the pixel shape (``(H, W)`` or ``(P,)``) and ``K = (P+1)(P+2)(P+3)/6``
+  ``S`` the pixel shape (``(H, W)`` or ``(N,)``) and ``K = (P+1)(P+2)(P+3)/6``
   (the order is inferred from ``K``), or
 * a **callable** ``f(wi, wo) -> (..., C)`` taking local directions (for
   example an analytic model of :mod:`torch_hsh.brdf` with per-pixel
@@ -36,7 +36,6 @@ Shapes everywhere: lights ``(L, 3)``; intensities ``None`` (all ones),
 """
 from __future__ import annotations
 
-import warnings
 from typing import Callable, Optional, Union
 
 import torch
@@ -365,16 +364,6 @@ def quantize(images: torch.Tensor, bits: int = 16, max_value: float = 1.0) -> to
     return x + (q - x).detach()
 
 
-def _renamed(value: float, old_value: Optional[float], name: str, old: str) -> float:
-    """Resolve a renamed keyword: the old name still works, with a DeprecationWarning."""
-    if old_value is None:
-        return value
-    if value != 0.0:
-        raise TypeError(f"pass `{name}` only (`{old}` is its earlier name)")
-    warnings.warn(f"`{old}` is deprecated; use `{name}`", DeprecationWarning, stacklevel=3)
-    return old_value
-
-
 def render(
     normals: torch.Tensor,
     lights: torch.Tensor,
@@ -389,15 +378,12 @@ def render(
     bits: Optional[int] = None,
     mask: Optional[torch.Tensor] = None,
     ambient: float = 0.0,
-    *,
-    read_noise: Optional[float] = None,
-    shot_noise: Optional[float] = None,
 ) -> torch.Tensor:
     r"""Render photometric-stereo images (section 7 of the math notes).
 
     Args:
         normals: ``(*S, 3)`` per-pixel normals, world frame (DiLiGenT frame:
-            x right, y up, z toward the camera); ``S`` is ``(H, W)`` or ``(P,)``.
+            x right, y up, z toward the camera); ``S`` is ``(H, W)`` or ``(N,)``.
         lights: ``(L, 3)`` unit directions toward the lights.
         brdf: coefficient maps ``(*S, C, K)`` in the isotropic Helmholtz basis,
             or a callable ``f(wi, wo) -> (L, *S, C)`` on local directions
@@ -410,8 +396,6 @@ def render(
         shot_gain: variance per unit signal of the shot noise (as in
             :func:`add_sensor_noise`).
         seed: noise seed (reproducible results).
-        read_noise, shot_noise: earlier names of ``read_std`` and
-            ``shot_gain`` (keyword only, deprecated).
         saturation: clip radiance at this level (also the full-scale value for
             quantisation); ``None``: no clipping (quantisation then uses the
             maximum of the rendered images as full scale).
@@ -462,8 +446,6 @@ def render(
         if ambient:
             vis = vis + ambient * (1 - vis)
         img = img * vis.unsqueeze(-1)
-    read_std = _renamed(read_std, read_noise, "read_std", "read_noise")
-    shot_gain = _renamed(shot_gain, shot_noise, "shot_gain", "shot_noise")
     img = add_sensor_noise(img, read_std, shot_gain, seed)
     if saturation is not None:
         if not saturation > 0:

@@ -527,8 +527,8 @@ def demo_scene(
     dtype=torch.float32,
     device=None,
     min_nz: float = 0.0,
-    read_noise: float = 1e-3,
-    shot_noise: float = 1e-4,
+    relative_read_std: float = 1e-3,
+    relative_shot_gain: float = 1e-4,
     bits: int = 16,
 ) -> dict:
     r"""The photometric-stereo demo scene: a bumpy sphere, two analytic materials, cast shadows, sensor noise.
@@ -554,9 +554,10 @@ def demo_scene(
     * **Image formation** (:func:`torch_hsh.render.render_model`): attached
       shadows, cast shadows (:func:`cast_shadow_mask` on ``height``); then,
       with full scale ``F = 1.05 x`` the brightest noise-free value in the
-      mask: Gaussian read noise of std ``read_noise * F``, shot noise of
-      variance ``shot_noise * F * I`` (:func:`torch_hsh.render.add_sensor_noise`;
-      ``1 / shot_noise`` photo-electrons at full scale), clipping to
+      mask: Gaussian read noise of std ``relative_read_std * F``, shot noise of
+      variance ``relative_shot_gain * F * I`` (:func:`torch_hsh.render.add_sensor_noise`
+      with ``read_std = relative_read_std * F`` and ``shot_gain = relative_shot_gain * F``;
+      ``1 / relative_shot_gain`` photo-electrons at full scale), clipping to
       ``[0, F]`` and quantisation to ``bits`` bits
       (:func:`torch_hsh.render.quantize`). Images are zero outside the mask.
 
@@ -572,8 +573,8 @@ def demo_scene(
         min_nz: the mask keeps the pixels inside the sphere's disc whose
             true normal has ``n_z > min_nz`` (in ``[0, 1)``; 0 keeps the whole
             disc, grazing rim included).
-        read_noise: read-noise std relative to full scale (>= 0).
-        shot_noise: shot-noise variance per unit signal, relative to full scale (>= 0).
+        relative_read_std: read-noise std relative to the full scale ``F`` (>= 0).
+        relative_shot_gain: shot-noise variance per unit signal, relative to the full scale ``F`` (>= 0).
         bits: quantisation depth, 1..32.
 
     Returns:
@@ -603,7 +604,7 @@ def demo_scene(
     dtype = _dtype(dtype)
     if isinstance(min_nz, bool) or not isinstance(min_nz, (int, float)) or not 0 <= min_nz < 1:
         raise ValueError(f"`min_nz` must be a number in [0, 1), got {min_nz!r}")
-    for name, val in (("read_noise", read_noise), ("shot_noise", shot_noise)):
+    for name, val in (("relative_read_std", relative_read_std), ("relative_shot_gain", relative_shot_gain)):
         if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val) or val < 0:
             raise ValueError(f"`{name}` must be a finite number >= 0, got {val!r}")
     bits = check_count(bits, "bits", minimum=1)
@@ -623,7 +624,7 @@ def demo_scene(
     ones = torch.ones(h, w, 1, dtype=f64)
     safe_n = torch.where(disc[..., None], normals, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
     ggx = CookTorranceGGX(albedo=albedo, specular=0.4 * ones, roughness=0.4 * ones, f0=0.3)
-    phong = BlinnPhong(kd=albedo, ks=0.3 * ones, shininess=30.0 * ones)
+    phong = BlinnPhong(albedo=albedo, specular=0.3 * ones, shininess=30.0 * ones)
     img = torch.where(
         (labels == 0)[None, ..., None],
         render_model(safe_n, lights, ggx, intensities=inten),
@@ -632,7 +633,8 @@ def demo_scene(
     vis = cast_shadow_mask(height, lights)
     img = img * vis[..., None].to(f64) * mask[None, ..., None].to(f64)
     full = 1.05 * float(img.max()) if bool(mask.any()) else 1.0
-    img = add_sensor_noise(img, read_std=read_noise * full, shot_gain=shot_noise * full, seed=noise_seed)
+    img = add_sensor_noise(img, read_std=relative_read_std * full, shot_gain=relative_shot_gain * full,
+                           seed=noise_seed)
     img = quantize(img, bits, full) * mask[None, ..., None].to(f64)
 
     out = dict(
@@ -670,7 +672,7 @@ def synthetic_scene(size: int = 48, n_lights: int = 40, seed: int = 0, dtype=tor
     ones = torch.ones(size, size, 1, dtype=dtype)
     models = [
         CookTorranceGGX(albedo=albedo, specular=0.3 * ones, roughness=0.5 * ones, f0=0.3),
-        BlinnPhong(kd=albedo, ks=0.3 * ones, shininess=20.0 * ones),
+        BlinnPhong(albedo=albedo, specular=0.3 * ones, shininess=20.0 * ones),
         TorranceSparrow(albedo, 0.15 * ones, 0.35 * ones, 1.5 * ones),
     ]
     img = torch.zeros(n_lights, size, size, 3, dtype=dtype)

@@ -134,7 +134,7 @@ def _load_result(args, ap: argparse.ArgumentParser):
     torch.set_num_threads(args.threads)
     src = Path(args.result)
     try:
-        return HSHResult.load(src / "result.npz" if src.is_dir() else src)
+        return HSHResult.read(src / "result.npz" if src.is_dir() else src)
     except (OSError, ValueError) as err:
         raise InputError(str(err)) from err
 
@@ -288,14 +288,14 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     if args.max_angle == "auto":
         lz = torch.nn.functional.normalize(res.lights.double(), dim=-1)[:, 2].clamp(-1, 1)
         max_angle = min(90.0, float(torch.rad2deg(torch.arccos(lz)).max()))
-    coeffs = project_to_rti(n, a, args.terms, mask=mask, exposure=exposure, max_angle_deg=max_angle,
-                            transfer="linear" if args.linear_output else "srgb")
+    coefficients = project_to_rti(n, a, args.terms, mask=mask, exposure=exposure, max_angle_deg=max_angle,
+                                  linear=args.linear_output)
     written = []
     if args.rti is not None:
-        write_rti_hsh(args.rti, coeffs, overwrite=args.overwrite)
+        write_rti_hsh(args.rti, coefficients, overwrite=args.overwrite)
         written.append(args.rti)
     if args.relight is not None:
-        save_relight(args.relight, coeffs, overwrite=args.overwrite)
+        save_relight(args.relight, coefficients, overwrite=args.overwrite)
         written.append(args.relight)
     say(f"{args.terms}-term HSH RTI of {int(mask.sum())} pixels, lights within {max_angle:.1f} deg, "
         f"exposure {exposure:.4g}, "

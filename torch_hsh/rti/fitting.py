@@ -351,11 +351,11 @@ def project_to_rti(
     terms: int = 9,
     mask: Optional[torch.Tensor] = None,
     exposure: float = 1.0,
-    transfer: str = "srgb",
+    linear: bool = False,
     max_angle_deg: Optional[float] = None,
     nz: int = 24,
     nphi: int = 48,
-    chunk: int = 256,
+    chunk_size: int = 256,
 ) -> torch.Tensor:
     r"""Project a photometric-stereo result onto the RTI HSH basis, pixel by pixel.
 
@@ -364,8 +364,8 @@ def project_to_rti(
     library's isotropic Helmholtz basis, :func:`torch_hsh.render.render_coefficients`).
     The viewers display ``sum_t c_t H_t(l)`` as is, so the function projected is
     ``g(l) = T(clip(exposure * I(l), 0, 1))`` with ``T`` the sRGB encoding
-    (``transfer="srgb"``, default: what an RTI made from the photographs holds)
-    or the identity (``"linear"``).
+    (``linear=False``, default: what an RTI made from the photographs holds)
+    or the identity (``linear=True``: the RTI holds linear values).
 
     * ``max_angle_deg=None`` (default): the projection on the whole upper
       hemisphere. The RTI basis is orthonormal there, so
@@ -390,12 +390,13 @@ def project_to_rti(
         mask: optional ``(*S)`` bool; coefficients are zero outside.
         exposure: factor applied to the radiance before ``T`` (1 = the
             result's own units; choose it so that the brightest value is near 1).
-        transfer: ``"srgb"`` or ``"linear"``.
+        linear: ``True`` to project linear values (no sRGB transfer); ``False`` (default) to
+            project sRGB-encoded values.
         max_angle_deg: ``None`` (whole hemisphere) or the half-angle of the
             cap of lights to fit, in ``(0, 90]``.
         nz, nphi: quadrature size.
-        chunk: pixels per batch. The rendering of a batch holds about ``chunk x nz x nphi x K x 3`` float64
-            values (at order 3 and the default rule, 256 pixels: about 250 MB); larger batches are not faster
+        chunk_size: pixels per chunk. The rendering of a chunk holds about ``chunk_size x nz x nphi x K x 3``
+            float64 values (at order 3 and the default rule, 256 pixels: about 250 MB); larger chunks are not faster
             (the bunny, 20,317 pixels, 1 thread: 14 s at 256, 24 s and 2 GB at 4,096).
 
     Returns:
@@ -404,7 +405,7 @@ def project_to_rti(
     Example:
         >>> n = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
         >>> a = torch.zeros(1, 3, 4, dtype=torch.float64); a[..., 0] = 2.0  # Lambertian, albedo 1
-        >>> c = project_to_rti(n, a, 9, transfer="linear", exposure=math.pi)  # I = cos(theta)
+        >>> c = project_to_rti(n, a, 9, linear=True, exposure=math.pi)  # I = cos(theta)
         >>> l = torch.tensor([[0.6, 0.0, 0.8]], dtype=torch.float64)
         >>> abs(float(evaluate_rti(c, l)[0, 0, 0]) - 0.8) < 0.01
         True
@@ -412,8 +413,8 @@ def project_to_rti(
     from ..render.images import render_coefficients
 
     terms = _check_terms(terms)
-    if transfer not in ("srgb", "linear"):
-        raise ValueError(f"`transfer` must be 'srgb' or 'linear', got {transfer!r}")
+    if not isinstance(linear, bool):
+        raise TypeError(f"`linear` must be a bool, got {type(linear).__name__}")
     if normals.shape[-1] != 3 or coefficients.shape[:-2] != normals.shape[:-1]:
         raise ValueError(f"`normals` (*S, 3) and `coefficients` (*S, C, K) disagree: {tuple(normals.shape)}, "
                          f"{tuple(coefficients.shape)}")
@@ -435,11 +436,11 @@ def project_to_rti(
     dirs, Hw = dirs.to(n.device), Hw.to(n.device)
     out = torch.zeros(n.shape[0], C, terms, dtype=torch.float64, device=n.device)
     idx = keep.nonzero().squeeze(1).to(n.device)
-    for s0 in range(0, idx.numel(), chunk):
-        sel = idx[s0 : s0 + chunk]
+    for s0 in range(0, idx.numel(), chunk_size):
+        sel = idx[s0 : s0 + chunk_size]
         img = render_coefficients(n[sel], dirs, a[sel]).clamp(min=0.0)  # (M, P, C)
         img = (img * float(exposure)).clamp(max=1.0)
-        if transfer == "srgb":
+        if not linear:
             img = torch.where(img <= 0.0031308, 12.92 * img, 1.055 * img.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
         out[sel] = torch.einsum("mpc,mt->pct", img, Hw)
     return out.reshape(*S, C, terms)

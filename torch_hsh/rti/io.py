@@ -473,7 +473,7 @@ def save_rti(
     lights,
     mask=None,
     fmt: str = "png",
-    encode_srgb: bool = True,
+    linear: bool = False,
     scale: Optional[float] = None,
     names: Optional[Sequence[str]] = None,
     lp_name: str = "lights.lp",
@@ -489,9 +489,9 @@ def save_rti(
         lights: ``(L, 3)`` light directions.
         mask: optional ``(H, W)`` bool mask written as ``mask.png``.
         fmt: ``"png"`` (lossless, default), ``"jpg"`` or ``"tif"``.
-        encode_srgb: apply the sRGB curve before quantising (what a camera's
-            JPEG holds); ``False`` writes linear codes (read them back with
-            ``linear=True``).
+        linear: ``False`` (default) applies the sRGB curve before quantising (what a
+            camera's JPEG holds); ``True`` writes linear codes (read them back with
+            ``load_rti(..., linear=True)``).
         scale: exposure: codes are ``round(255 * T(scale * images))``, default
             ``1 / max(images)``; values above 1 are clipped with a warning.
         names: image names (default ``img_001.<fmt>``...).
@@ -536,7 +536,7 @@ def save_rti(
         warnings.warn(f"{int((scaled > 1 + 1e-9).sum())} values exceed the 8-bit range after scaling; clipped",
                       UserWarning, stacklevel=2)
     scaled = np.clip(scaled, 0.0, 1.0)
-    codes = np.rint((srgb_encode(scaled) if encode_srgb else scaled) * 255).astype(np.uint8)
+    codes = np.rint((scaled if linear else srgb_encode(scaled)) * 255).astype(np.uint8)
     folder = _output_folder(path, overwrite)
     for name, c in zip(names, codes):
         f = folder / name

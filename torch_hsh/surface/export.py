@@ -32,7 +32,7 @@ import torch
 from .._checks import check_shape, check_tensor
 from .integrate import _check_depth, depth_to_normals
 
-__all__ = ["save_depth", "depth_to_mesh", "save_mesh", "shade_depth", "MESH_EXTRA_HINT"]
+__all__ = ["write_depth", "depth_to_mesh", "write_mesh", "shade_depth", "MESH_EXTRA_HINT"]
 
 #: How to get the optional mesh dependency.
 MESH_EXTRA_HINT = "pip install torch-hsh[mesh]"
@@ -61,7 +61,7 @@ def _out_path(path, overwrite: bool, suffixes: Sequence[str]) -> Path:
     return path
 
 
-def save_depth(path, depth: torch.Tensor, mask: Optional[torch.Tensor] = None, overwrite: bool = False) -> Path:
+def write_depth(path, depth: torch.Tensor, mask: Optional[torch.Tensor] = None, overwrite: bool = False) -> Path:
     r"""Write a depth map as ``.npy`` or ``.exr`` (chosen by the suffix).
 
     Pixels outside ``mask`` are written as NaN. ``.npy`` keeps the dtype;
@@ -78,7 +78,7 @@ def save_depth(path, depth: torch.Tensor, mask: Optional[torch.Tensor] = None, o
         The path written.
 
     Example:
-        >>> save_depth(tmp_path / "depth.exr", torch.zeros(4, 5))  # doctest: +SKIP
+        >>> write_depth(tmp_path / "depth.exr", torch.zeros(4, 5))  # doctest: +SKIP
         >>> read_exr(tmp_path / "depth.exr")["Z"].shape  # doctest: +SKIP
         (4, 5)
     """
@@ -199,7 +199,7 @@ def depth_to_mesh(
     )
 
 
-def save_mesh(
+def write_mesh(
     path,
     depth: torch.Tensor,
     mask: Optional[torch.Tensor] = None,
@@ -222,7 +222,7 @@ def save_mesh(
         ImportError: trimesh is missing (``pip install torch-hsh[mesh]``).
 
     Example:
-        >>> save_mesh(tmp_path / "cat.ply", depth, mask, normals, albedo)  # doctest: +SKIP
+        >>> write_mesh(tmp_path / "cat.ply", depth, mask, normals, albedo)  # doctest: +SKIP
     """
     _trimesh()
     path = _out_path(path, overwrite, (".ply", ".obj"))
@@ -245,15 +245,15 @@ def shade_depth(
     ambient: float = 0.15,
     shadows: bool = False,
     background: float = 1.0,
-    srgb: bool = True,
+    linear: bool = False,
 ) -> torch.Tensor:
     r"""A shaded picture of a depth map (Lambertian, one directional light).
 
     ``value = albedo * (ambient + (1 - ambient) * max(0, n . l) * V)`` with
     ``n`` the normals of the depth (:func:`torch_hsh.surface.depth_to_normals`)
     and ``V`` the cast-shadow visibility (:func:`light_visibility`) if
-    ``shadows``; ``background`` outside the mask; optionally sRGB-encoded for
-    display. Shows the reconstructed surface itself, independent of the
+    ``shadows``; ``background`` outside the mask; sRGB-encoded for display
+    unless ``linear``. Shows the reconstructed surface itself, independent of the
     normal map it came from.
 
     Args:
@@ -264,7 +264,8 @@ def shade_depth(
         ambient: floor of the shading in ``[0, 1]``.
         shadows: also cast shadows.
         background: value outside the mask.
-        srgb: encode with the sRGB curve (for PNG output).
+        linear: return linear values; ``False`` (default) encodes them with the sRGB
+            curve (for PNG output).
 
     Returns:
         ``(H, W)`` (or ``(H, W, 3)`` with a colour albedo) float image in
@@ -272,7 +273,7 @@ def shade_depth(
 
     Example:
         >>> z = torch.zeros(8, 8)
-        >>> img = shade_depth(z, light=(0.0, 0.0, 1.0), srgb=False)
+        >>> img = shade_depth(z, light=(0.0, 0.0, 1.0), linear=True)
         >>> float(img[4, 4])  # flat surface facing the light
         1.0
     """
@@ -299,6 +300,6 @@ def shade_depth(
         shade = shade[..., None] * a if a.dim() == 3 else shade * a
     mm = m[..., None] if shade.dim() == 3 else m
     img = torch.where(mm, shade.clamp(0, 1), torch.full_like(shade, float(background)))
-    if srgb:
+    if not linear:
         img = torch.where(img <= 0.0031308, 12.92 * img, 1.055 * img.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
     return img.to(depth.dtype)

@@ -14,7 +14,7 @@ range alone. Visibility of pixels outside the mask is reported as ``True``
 (nothing known occludes them).
 
 Memory is bounded: the output is one ``(L, H, W)`` bool tensor (96 MB for
-96 lights at 1024^2); lights are marched ``chunk`` at a time (the marcher's
+96 lights at 1024^2); lights are marched ``chunk_size`` at a time (the marcher's
 own temporaries are ``O(H W)``). Work is ``O(L H W steps)``. Device
 agnostic (the depth's device).
 """
@@ -38,7 +38,7 @@ def light_visibility(
     lights: torch.Tensor,
     bias: float = 0.0,
     n_steps: Optional[int] = None,
-    chunk: int = 8,
+    chunk_size: int = 8,
 ) -> torch.Tensor:
     r"""Per-light, per-pixel visibility of a depth map (``False`` = cast shadow).
 
@@ -52,7 +52,7 @@ def light_visibility(
             (``>= 0``); a bias of a few tenths of a pixel keeps the noise of
             an integrated depth from shadowing pixels near grazing lights.
         n_steps: optional cap on the march length (pixels).
-        chunk: lights marched per call of the marcher (memory bound).
+        chunk_size: lights marched per call of the marcher (memory bound).
 
     Returns:
         ``(L, H, W)`` bool on ``depth``'s device: ``True`` where light ``l``
@@ -71,8 +71,8 @@ def light_visibility(
     m = _check_mask(mask, tuple(depth.shape), depth.device)
     check_dirs(lights, "lights")
     check_shape(lights, "lights", ("L", 3))
-    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
-        raise ValueError(f"`chunk` must be a positive integer, got {chunk!r}")
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
+        raise ValueError(f"`chunk_size` must be a positive integer, got {chunk_size!r}")
     if isinstance(bias, bool) or not isinstance(bias, (int, float)) or not math.isfinite(bias) or bias < 0:
         raise ValueError(f"`bias` must be a finite number >= 0, got {bias!r}")
     L = lights.shape[0]
@@ -86,7 +86,7 @@ def light_visibility(
         raise ValueError("`depth` contains NaN or Inf inside `mask`")
     hgt = torch.where(m, d, inside.min().expand_as(d))
     lts = lights.detach().to(device=depth.device, dtype=depth.dtype)
-    for s in range(0, L, chunk):
-        v = cast_shadow_mask(hgt, lts[s : s + chunk], pixel_size=1.0, n_steps=n_steps, bias=float(bias))
-        vis[s : s + chunk] = v | ~m
+    for s in range(0, L, chunk_size):
+        v = cast_shadow_mask(hgt, lts[s : s + chunk_size], pixel_size=1.0, n_steps=n_steps, bias=float(bias))
+        vis[s : s + chunk_size] = v | ~m
     return vis
