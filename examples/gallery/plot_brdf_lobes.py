@@ -46,15 +46,15 @@ for i, (name, (brdf, cutoff)) in enumerate(brdfs.items()):
     ax.set_theta_direction(-1)
     ax.set_thetamin(-90)
     ax.set_thetamax(90)
-    truth = brdf(wi, wo).reshape(-1)
-    ax.plot(angles, truth, "k", lw=2.2, label="BRDF")
+    truth = brdf(wi, wo).reshape(-1).numpy()
+    ax.plot(angles.numpy(), truth, "k", lw=2.2, label="BRDF")
     ax.set_rlim(0, 1.1 * float(truth.max()))
     ax.yaxis.set_major_locator(plt.MaxNLocator(3))
     ax.tick_params(axis="y", labelsize=7)
     for order in orders:
         coefficients = torch_hsh.project(brdf, order, grazing_cutoff=cutoff)  # (1, K)
-        values = torch_hsh.reconstruct(coefficients, wi, wo, channels=True)[:, 0]
-        ax.plot(angles, values.clamp(min=0), color=colours[order], lw=1.4, label=f"order {order}")
+        values = torch_hsh.reconstruct(coefficients, wi, wo, channels=True)[:, 0].clamp(min=0).numpy()
+        ax.plot(angles.numpy(), values, color=colours[order], lw=1.4, label=f"order {order}")
     ax.annotate("", xy=(-theta_i, 0.9 * float(truth.max())), xytext=(0, 0),
                 arrowprops=dict(arrowstyle="<-", color="0.4"))
     ax.set_title(f"{name}\n(arrow: light, 40 deg)", fontsize=10)
@@ -65,7 +65,7 @@ for i, (name, (brdf, cutoff)) in enumerate(brdfs.items()):
 
 ax = fig.add_subplot(1, 3, 3)
 for name, acc in accuracy.items():
-    ax.plot(range(len(acc)), acc, "o-", label=name)
+    ax.plot(range(len(acc)), acc.numpy(), "o-", label=name)
 ax.set_xlabel("order P")
 ax.set_ylabel("Acc(P): fraction of the energy")
 ax.set_ylim(0, 1.02)

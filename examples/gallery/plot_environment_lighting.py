@@ -64,12 +64,12 @@ exposure = 1 / float(torch.quantile(torch.cat(list(renders.values())), 0.995))
 fig, axes = plt.subplots(1 + len(materials), len(skies), figsize=(9, 7.6), layout="constrained",
                          height_ratios=[0.5] + [1] * len(materials))
 for j, (name, env) in enumerate(skies.items()):
-    axes[0, j].imshow((env.data / 8).clamp(0, 1) ** (1 / 2.2))
+    axes[0, j].imshow(((env.data / 8).clamp(0, 1) ** (1 / 2.2)).numpy())
     axes[0, j].set_title(name, fontsize=10)
     for i, (label, coefficients) in enumerate(materials.items()):
         image = torch.zeros(size, size, 3, dtype=DT)
         image[inside] = renders[label, name]
-        axes[i + 1, j].imshow((exposure * image).clamp(0, 1) ** (1 / 2.2))
+        axes[i + 1, j].imshow(((exposure * image).clamp(0, 1) ** (1 / 2.2)).numpy())
         if j == 0:
             axes[i + 1, j].set_ylabel(label)
 for ax in axes.flat:

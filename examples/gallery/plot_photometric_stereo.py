@@ -43,17 +43,17 @@ print(f"mean angular error: HSH {error_hsh[mask].mean():.2f} deg, "
 # error maps of both solvers on the same colour scale.
 def show_image(x):
     """Linear radiance to a displayable sRGB-like picture (exposure at the 99th percentile)."""
-    return (x / torch.quantile(x[mask], 0.99)).clamp(0, 1) ** (1 / 2.2)
+    return ((x / torch.quantile(x[mask], 0.99)).clamp(0, 1) ** (1 / 2.2)).numpy()
 
 
 fig, axes = plt.subplots(1, 4, figsize=(12, 3.4), layout="constrained")
 axes[0].imshow(show_image(images[len(lights) // 2]))
 axes[0].set_title("input (1 of 40 lights)")
-axes[1].imshow(((result.normals + 1) / 2 * mask[..., None]).clamp(0, 1))
+axes[1].imshow(((result.normals + 1) / 2 * mask[..., None]).clamp(0, 1).numpy())
 axes[1].set_title("HSH normal map")
 vmax = float(error_lambertian[mask].quantile(0.98))
 for ax, err, name in ((axes[2], error_hsh, "HSH"), (axes[3], error_lambertian, "robust Lambertian")):
-    im = ax.imshow(err, cmap="magma", vmin=0, vmax=vmax)
+    im = ax.imshow(err.numpy(), cmap="magma", vmin=0, vmax=vmax)
     ax.set_title(f"{name}: mean {err[mask].mean():.1f} deg")
 fig.colorbar(im, ax=axes[2:], shrink=0.8, label="angular error (deg)")
 for ax in axes:

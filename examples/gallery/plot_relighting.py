@@ -38,7 +38,7 @@ scale = float(torch.quantile(photos[:, mask], 0.99))
 
 def show(x):
     """Linear radiance to a displayable picture (one exposure for every panel, gamma 2.2)."""
-    return (x / scale).clamp(0, 1) ** (1 / 2.2)
+    return ((x / scale).clamp(0, 1) ** (1 / 2.2)).numpy()
 
 
 fig, axes = plt.subplots(2, len(held), figsize=(10, 5.4), layout="constrained")

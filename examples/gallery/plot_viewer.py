@@ -20,6 +20,7 @@ import matplotlib.pyplot as plt
 
 from torch_hsh.cli import run
 
+# sphinx_gallery_thumbnail_number = 2
 SCALE = 4  # device pixels per CSS pixel of the screenshots: the 48 x 48 canvas becomes 192 x 192
 SIZE = 48
 SHOTS = {"light from the upper left": "light=-0.5,0.5,0.707&mode=relit",
@@ -31,7 +32,7 @@ SHOTS = {"light from the upper left": "light=-0.5,0.5,0.707&mode=relit",
 work = Path(tempfile.mkdtemp(prefix="torch_hsh_gallery_"))
 run(["demo", "--scene", "small", "--size", str(SIZE), "--out", str(work / "small"), "--quiet"])
 run(["view", str(work / "small"), "--out", str(work / "small.html"), "--quiet"])
-print(f"wrote {work / 'small.html'} ({(work / 'small.html').stat().st_size / 2 ** 10:.0f} KiB)")
+print(f"torch-hsh view wrote a page of {(work / 'small.html').stat().st_size / 2 ** 10:.0f} KiB")
 
 
 # %%
