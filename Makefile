@@ -68,7 +68,8 @@ $(DOCS_STAMP): $(STAMP) pyproject.toml
 	$(PY) -m pip install -q -e ".[docs]"
 	touch $(DOCS_STAMP)
 
-# The HTML site (Sphinx + furo + myst-parser), warnings are errors: docs/_build/html/index.html
+# The HTML site (Sphinx + furo + myst-parser; the gallery runs examples/gallery/plot_*.py into docs/gallery,
+# about 15 s; the CLI reference comes from the parser), warnings are errors: docs/_build/html/index.html
 docs: $(DOCS_STAMP)
 	$(PY) -m sphinx -W --keep-going -q -b html docs docs/_build/html
 
@@ -101,4 +102,4 @@ bench: $(BENCH_STAMP)
 	$(PY) benchmarks/bench_basis.py $(ARGS)
 
 clean:
-	rm -rf $(VENV) .venv-lowest build dist *.egg-info .pytest_cache docs/_build
+	rm -rf $(VENV) .venv-lowest build dist *.egg-info .pytest_cache docs/_build docs/gallery docs/sg_execution_times.rst

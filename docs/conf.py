@@ -1,9 +1,12 @@
 """Sphinx configuration: API pages from the docstrings (autodoc + napoleon), the markdown pages
-through myst-parser, the furo theme. Build with ``make docs`` (warnings are errors)."""
+through myst-parser, the furo theme, the gallery (sphinx-gallery: ``examples/gallery/plot_*.py`` run
+into ``docs/gallery/``, generated, not committed) and the command-line reference from the parser
+(sphinx-argparse). Build with ``make docs`` (warnings are errors)."""
 import os
 import sys
 
 sys.path.insert(0, os.path.abspath(".."))
+sys.path.insert(0, os.path.abspath("."))  # _cli_parser (the parser of docs/cli_reference.md)
 import torch_hsh  # noqa: E402
 
 project = "torch_hsh"
@@ -18,6 +21,8 @@ extensions = [
     "sphinx.ext.mathjax",
     "sphinx.ext.viewcode",
     "myst_parser",
+    "sphinx_gallery.gen_gallery",
+    "sphinxarg.ext",
 ]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 root_doc = "index"
@@ -36,3 +41,21 @@ napoleon_use_ivar = True  # dataclass "Attributes:" as fields, not duplicate att
 
 html_theme = "furo"
 html_title = f"torch_hsh {release}"
+
+# The gallery: every examples/gallery/plot_*.py runs at each build (a few seconds each, CPU, float64
+# scenes) and its matplotlib figures become the pictures of docs/gallery/ (generated; .gitignore).
+os.environ.setdefault("MPLBACKEND", "Agg")
+sphinx_gallery_conf = {
+    "examples_dirs": ["../examples/gallery"],
+    "gallery_dirs": ["gallery"],
+    "filename_pattern": r"/plot_",
+    "ignore_pattern": r"__init__\.py",
+    "within_subsection_order": "FileNameSortKey",
+    "image_scrapers": ("matplotlib",),
+    "download_all_examples": False,
+    "remove_config_comments": True,
+    "abort_on_example_error": True,
+    "only_warn_on_example_error": False,
+    "show_memory": False,
+    "plot_gallery": "True",
+}
