@@ -10,10 +10,17 @@ recurrence constants as :func:`torch_hsh.helmholtz_isotropic_world`, see
 :func:`glsl_isotropic_basis`), ``v = (0, 0, 1)``, and shows ``sRGB(min(1, exposure * I))`` -- the
 image :func:`torch_hsh.io.rti.srgb_encode` of ``exposure * HSHResult.relight(l)``.
 
-The light follows the mouse (drag on the image: ``x`` right, ``y`` up, ``z`` toward the viewer);
-buttons switch to the normal map, the albedo, the confidence and the residual map. The page reads
-``#light=x,y,z&mode=relit|normals|albedo|confidence|error`` from its URL (used by the tests, which
-screenshot it in headless Chromium).
+The page shows the result's name, a help line, the image fitted to the window (a dark neutral
+background; the controls in a side panel, below the image in a portrait window, hidden in a window
+under 260 x 200 where all of it is image) and a light-direction disc. Drag on the image or the disc to
+move the light (``x`` right, ``y`` up, ``z`` toward the viewer; the disc's dot shows it); scroll or
+``+``/``-`` to zoom about the cursor; shift-drag or middle-drag pans (the switch OpenLIME uses between
+light and pan; "Pan mode" or ``p`` makes a plain drag pan); Fit or ``0`` resets the view. Zoom and pan
+only move the canvas (a CSS transform, its pixels unchanged; ``data-view="s,tx,ty"`` on it); buttons
+switch to the normal map, the albedo, the confidence and the residual map. The page reads
+``#light=x,y,z&mode=relit|normals|albedo|confidence|error&zoom=Z&center=X,Y`` from its URL (zoom
+relative to the fit, centre in image pixels from the top left; used by the tests, which screenshot it
+in headless Chromium).
 
 When the first frame is drawn (and the GPU has finished it), the page records its times in
 milliseconds after the navigation start (``performance.now()``) on ``document.body``:
