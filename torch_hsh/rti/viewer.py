@@ -10,10 +10,17 @@ recurrence constants as :func:`torch_hsh.helmholtz_isotropic_world`, see
 :func:`glsl_isotropic_basis`), ``v = (0, 0, 1)``, and shows ``sRGB(min(1, exposure * I))`` -- the
 image :func:`torch_hsh.rti.io.srgb_encode` of ``exposure * HSHResult.relight(l)``.
 
-The light follows the mouse (drag on the image: ``x`` right, ``y`` up, ``z`` toward the viewer);
-buttons switch to the normal map, the albedo, the confidence and the residual map. The page reads
-``#light=x,y,z&mode=relit|normals|albedo|confidence|error`` from its URL (used by the tests, which
-screenshot it in headless Chromium).
+The page shows the result's name, a help line, the image fitted to the window (a dark neutral
+background; the controls in a side panel, below the image in a portrait window, hidden in a window
+under 260 x 200 where all of it is image) and a light-direction disc. Drag on the image or the disc to
+move the light (``x`` right, ``y`` up, ``z`` toward the viewer; the disc's dot shows it); scroll or
+``+``/``-`` to zoom about the cursor; shift-drag or middle-drag pans (the switch OpenLIME uses between
+light and pan; "Pan mode" or ``p`` makes a plain drag pan); Fit or ``0`` resets the view. Zoom and pan
+only move the canvas (a CSS transform, its pixels unchanged; ``data-view="s,tx,ty"`` on it); buttons
+switch to the normal map, the albedo, the confidence and the residual map. The page reads
+``#light=x,y,z&mode=relit|normals|albedo|confidence|error&zoom=Z&center=X,Y`` from its URL (zoom
+relative to the fit, centre in image pixels from the top left; used by the tests, which screenshot it
+in headless Chromium).
 
 When the first frame is drawn (and the GPU has finished it), the page records its times in
 milliseconds after the navigation start (``performance.now()``) on ``document.body``:
@@ -31,7 +38,9 @@ from __future__ import annotations
 import base64
 import json
 import math
+import re
 import zlib
+from html import escape as html_escape
 from pathlib import Path
 from typing import List, Optional
 
@@ -205,9 +214,14 @@ def write_viewer(path, result, exposure: Optional[float] = None, title: str = "t
     rmax = float(resid[mask].max()) if mask.any() else 1.0
     meta = {"width": W, "height": H, "layers": nl, "K": K, "order": order, "exposure": float(exposure),
             "lo": [float(v) for v in lo], "span": [float(v) for v in span], "residual_max": rmax or 1.0}
-    html = _TEMPLATE.replace("__TITLE__", title).replace("__META__", json.dumps(meta)).replace(
-        "__DATA__", blob).replace("__BASIS__", glsl_isotropic_basis(order)).replace("__K__", str(K)).replace(
-        "__NL__", str(nl)).replace("__NCH__", str(4 * nl))
+    # the heading: the result's name, after a muted "torch_hsh" when the title is "torch_hsh: NAME" (the CLI's)
+    brand, sep, name = title.partition(": ")
+    heading = (f'<span class="brand">{html_escape(brand)}</span>{html_escape(name)}' if sep and brand == "torch_hsh"
+               else html_escape(title))
+    fields = {"__TITLE__": html_escape(title), "__HEADING__": heading, "__META__": json.dumps(meta), "__DATA__": blob,
+              "__BASIS__": glsl_isotropic_basis(order), "__K__": str(K), "__NL__": str(nl), "__NCH__": str(4 * nl)}
+    # one pass: a title holding a placeholder's name stays as it is
+    html = re.sub("|".join(fields), lambda m: fields[m.group(0)], _TEMPLATE)
     data = html.encode("utf-8")
     if max_bytes is not None and len(data) > max_bytes:
         raise ValueError(f"the viewer would be {len(data) / 2 ** 20:.1f} MiB, more than {max_bytes / 2 ** 20:.0f} MiB")
@@ -218,13 +232,80 @@ def write_viewer(path, result, exposure: Optional[float] = None, title: str = "t
 
 
 _TEMPLATE = r"""<!doctype html>
-<html><head><meta charset="utf-8"><title>__TITLE__</title>
-<style>body{margin:0;background:#000;color:#ddd;font:13px sans-serif}canvas{display:block;cursor:crosshair}
-#ui{padding:6px}button{margin-right:4px}</style></head>
-<body><canvas id="c"></canvas>
-<div id="ui"><button data-m="relit">relit</button><button data-m="normals">normals</button>
-<button data-m="albedo">albedo</button><button data-m="confidence">confidence</button>
-<button data-m="error">residual</button> <span id="info"></span></div>
+<html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">
+<title>__TITLE__</title>
+<style>
+:root{--bg:#17181b;--panel:#1f2024;--line:#2e3036;--text:#e8e8ea;--muted:#9b9ea6;--accent:#f5b942;--btn:#2a2c31;--btnh:#34373d}
+*{box-sizing:border-box}
+html,body{height:100%}
+body{margin:0;background:var(--bg);color:var(--text);font:13px/1.4 system-ui,-apple-system,"Segoe UI",Roboto,"Helvetica Neue",Arial,sans-serif;
+  display:grid;grid-template:"top top" auto "view panel" minmax(0,1fr)/minmax(0,1fr) 208px;overflow:hidden}
+header{grid-area:top;display:flex;align-items:baseline;gap:14px;padding:9px 16px;border-bottom:1px solid var(--line);min-width:0}
+h1{margin:0;font-size:16px;font-weight:600;white-space:nowrap;overflow:hidden;text-overflow:ellipsis;flex:0 1 auto}
+h1 .brand{color:var(--muted);font-weight:400;margin-right:6px}
+#help{margin:0;color:var(--muted);font-size:12.5px;flex:1 1 0;min-width:0;white-space:nowrap;overflow:hidden;text-overflow:ellipsis}
+#help b{color:var(--text);font-weight:500}
+#view{grid-area:view;position:relative;overflow:hidden;background:#101113;cursor:crosshair;touch-action:none;user-select:none}
+#view.pan,#view.panning{cursor:grab}#view.panning{cursor:grabbing}
+canvas{position:absolute;left:0;top:0;transform-origin:0 0;display:block}
+canvas.px{image-rendering:pixelated}
+aside{grid-area:panel;background:var(--panel);border-left:1px solid var(--line);padding:12px 14px;display:flex;flex-direction:column;gap:14px;overflow:auto}
+aside section{display:flex;flex-direction:column;gap:7px}
+h2{margin:0;font-size:11px;font-weight:600;letter-spacing:.08em;text-transform:uppercase;color:var(--muted)}
+#lightpad{width:128px;height:128px;align-self:center;cursor:crosshair;touch-action:none;display:block}
+#lightval{color:var(--muted);font-variant-numeric:tabular-nums;text-align:center;font-size:12px}
+.row{display:flex;gap:6px;align-items:center}
+button{font:inherit;color:var(--text);background:var(--btn);border:1px solid var(--line);border-radius:6px;padding:4px 10px;cursor:pointer;min-height:28px}
+button:hover{background:var(--btnh)}button:focus-visible{outline:2px solid var(--accent);outline-offset:1px}
+button[aria-pressed="true"]{background:#3b3422;border-color:var(--accent);color:#ffe1a3}
+#zout,#zin{width:30px;padding:0;font-size:16px;line-height:1}
+#zoomval{min-width:46px;text-align:center;font-variant-numeric:tabular-nums;color:var(--muted)}
+#modes{display:flex;flex-wrap:wrap;gap:6px}#modes button{padding:4px 8px}
+#info{color:var(--muted);font-size:11.5px;margin-top:auto}
+@media (max-width:760px),(max-height:520px){
+  body{grid-template-columns:minmax(0,1fr) 152px}
+  header{padding:6px 12px;gap:10px}h1{font-size:14px}
+  #help{white-space:normal;font-size:11.5px;line-height:1.3}
+  aside{padding:8px 10px;gap:8px}aside h2{display:none}
+  #lightpad{width:84px;height:84px}#lightval{display:none}
+  #modes{gap:4px}aside button{min-height:24px;padding:2px 7px;font-size:12px}#zout,#zin{width:26px}
+  #info{display:none}
+}
+@media (max-aspect-ratio:4/5){
+  body{grid-template:"top" auto "view" minmax(0,1fr) "panel" auto/minmax(0,1fr)}
+  header{flex-direction:column;gap:2px}#help{flex:none}
+  aside{border-left:0;border-top:1px solid var(--line);flex-direction:row;flex-wrap:wrap;align-items:center;gap:8px 14px}
+  #lightpad{width:72px;height:72px}#lightval{display:none}
+}
+@media (max-width:260px),(max-height:200px){
+  body{grid-template:"view" minmax(0,1fr)/minmax(0,1fr)}
+  header,aside{display:none}
+}
+</style></head>
+<body>
+<header><h1 id="title">__HEADING__</h1>
+<p id="help"><b>Drag</b> on the image or the disc to move the light &middot; <b>scroll</b> or <b>+</b>/<b>&minus;</b> to zoom &middot;
+<b>shift-drag</b> or middle-drag to pan (as OpenLIME) &middot; <b>Fit</b> or <b>0</b> resets the view</p></header>
+<main id="view"><canvas id="c" aria-label="relit image"></canvas></main>
+<aside>
+<section><h2>Light</h2>
+<svg id="lightpad" viewBox="-1.12 -1.12 2.24 2.24" role="slider" aria-label="light direction: click or drag">
+<defs><radialGradient id="shade" cx="0" cy="0" r="1.25" fx="0" fy="0" gradientUnits="userSpaceOnUse">
+<stop offset="0" stop-color="#d9d3c4"/><stop offset=".55" stop-color="#6d6a63"/><stop offset="1" stop-color="#1c1c1e"/></radialGradient></defs>
+<circle r="1" fill="url(#shade)" stroke="#4a4c52" stroke-width=".02"/>
+<g fill="none" stroke="#000" stroke-opacity=".28" stroke-width=".012"><circle r=".866"/><circle r=".5"/>
+<path d="M-1 0H1M0 -1V1"/></g>
+<circle id="lightdot" r=".085" fill="var(--accent)" stroke="#fff" stroke-width=".03"/></svg>
+<div id="lightval"></div></section>
+<section><h2>View</h2>
+<div class="row"><button id="zout" title="zoom out (-)">&minus;</button><span id="zoomval">100%</span>
+<button id="zin" title="zoom in (+)">+</button><button id="fit" title="fit the image to the window (0 or double-click)">Fit</button></div>
+<div class="row"><button id="pan" aria-pressed="false" title="drag pans instead of moving the light (p)">Pan mode</button></div></section>
+<section><h2>Show</h2><div id="modes">
+<button data-m="relit">Relit</button><button data-m="normals">Normals</button><button data-m="albedo">Albedo</button>
+<button data-m="confidence">Confidence</button><button data-m="error">Residual</button></div></section>
+<div id="info"></div>
+</aside>
 <script id="meta" type="application/json">__META__</script>
 <script id="data" type="application/octet-stream">__DATA__</script>
 <script>
@@ -232,12 +313,44 @@ _TEMPLATE = r"""<!doctype html>
 const T_SCRIPT = performance.now();  // the HTML, embedded data included, is parsed up to here
 const META = JSON.parse(document.getElementById('meta').textContent);
 const MODES = ['relit', 'normals', 'albedo', 'confidence', 'error'];
-const state = {light: [0, 0, 1], mode: 0};
+const state = {light: [0, 0, 1], mode: 0, zoom: 1, cx: META.width / 2, cy: META.height / 2, pan: false};
 function parseHash() {
   const h = new URLSearchParams(location.hash.slice(1));
   if (h.get('light')) { const v = h.get('light').split(',').map(Number); const n = Math.hypot(...v); state.light = v.map(x => x / n); }
   if (h.get('mode')) state.mode = Math.max(0, MODES.indexOf(h.get('mode')));
+  if (h.get('zoom')) state.zoom = Number(h.get('zoom')) || 1;  // relative to the fit view
+  if (h.get('center')) { const c = h.get('center').split(',').map(Number); if (c.length === 2 && c.every(isFinite)) [state.cx, state.cy] = c; }
 }
+// the view: the image scaled by vt.s (zoom times the scale that fits it in the window), its point
+// (state.cx, state.cy) (image pixels from the top left) at the centre of #view; only the canvas's CSS
+// transform changes, never its pixels (the rendered image)
+const TINY = matchMedia('(max-width:260px),(max-height:200px)');  // no header and no panel: all window is image
+const vt = {s: 1, tx: 0, ty: 0, fit: 1};
+const ZMIN = 0.5, SMAX = 40;
+function clamp(v, a, b) { return Math.min(b, Math.max(a, v)); }
+function layout() {
+  const view = document.getElementById('view'), cv = document.getElementById('c');
+  const vw = view.clientWidth, vh = view.clientHeight, m = TINY.matches ? 0 : 16;
+  vt.fit = Math.max(1e-3, Math.min((vw - 2 * m) / META.width, (vh - 2 * m) / META.height));
+  state.zoom = clamp(state.zoom, ZMIN, Math.max(1, SMAX / vt.fit));
+  state.cx = clamp(state.cx, 0, META.width); state.cy = clamp(state.cy, 0, META.height);
+  vt.s = state.zoom * vt.fit; vt.tx = Math.round(vw / 2 - vt.s * state.cx); vt.ty = Math.round(vh / 2 - vt.s * state.cy);
+  cv.style.transform = 'translate(' + vt.tx + 'px,' + vt.ty + 'px) scale(' + vt.s + ')';
+  cv.classList.toggle('px', vt.s >= 1);  // magnified: sharp image pixels
+  document.getElementById('zoomval').textContent = (vt.s >= 10 ? vt.s.toFixed(0) : vt.s.toPrecision(2)).replace(/\.0+$/, '') + '\u00d7';
+  // image pixel (i, j) (from the top left) covers [tx + s i, tx + s (i + 1)) x [ty + s j, ...) of #view
+  cv.dataset.view = vt.s.toFixed(6) + ',' + vt.tx + ',' + vt.ty;
+  view.dataset.size = vw + ',' + vh;
+}
+function zoomBy(f, mx, my) {  // zoom by f keeping the image point under (mx, my) of #view (default: its centre) in place
+  const view = document.getElementById('view'), vw = view.clientWidth, vh = view.clientHeight;
+  if (mx === undefined) { mx = vw / 2; my = vh / 2; }
+  const px = (mx - vt.tx) / vt.s, py = (my - vt.ty) / vt.s;
+  state.zoom = clamp(state.zoom * f, ZMIN, Math.max(1, SMAX / vt.fit));
+  const s = state.zoom * vt.fit;
+  state.cx = px - (mx - vw / 2) / s; state.cy = py - (my - vh / 2) / s; layout();
+}
+function fit() { state.zoom = 1; state.cx = META.width / 2; state.cy = META.height / 2; layout(); }
 const VS = `#version 300 es
 in vec2 p; void main() { gl_Position = vec4(p, 0.0, 1.0); }`;
 const FS = `#version 300 es
@@ -278,6 +391,7 @@ function shader(gl, type, src) { const s = gl.createShader(type); gl.shaderSourc
 async function main() {
   parseHash();
   const cv = document.getElementById('c'); cv.width = META.width; cv.height = META.height;
+  layout(); window.addEventListener('resize', layout);
   const gl = cv.getContext('webgl2', {preserveDrawingBuffer: true, antialias: false});
   if (!gl) { document.getElementById('info').textContent = 'WebGL2 is not available'; return; }
   const b64 = document.getElementById('data').textContent.trim();
@@ -302,15 +416,64 @@ async function main() {
   const U = name => gl.getUniformLocation(prog, name);
   gl.uniform1i(U('tex'), 0); gl.uniform1fv(U('lo'), META.lo); gl.uniform1fv(U('span'), META.span);
   gl.uniform1f(U('exposure'), META.exposure); gl.uniform1f(U('rmax'), META.residual_max);
+  const view = document.getElementById('view'), pad = document.getElementById('lightpad');
+  const dot = document.getElementById('lightdot'), shade = document.getElementById('shade');
+  const modeButtons = document.querySelectorAll('#modes button'), panButton = document.getElementById('pan');
+  function showLight() {
+    const [x, y, z] = state.light;
+    dot.setAttribute('cx', x.toFixed(4)); dot.setAttribute('cy', (-y).toFixed(4));
+    shade.setAttribute('fx', (0.9 * x).toFixed(4)); shade.setAttribute('fy', (-0.9 * y).toFixed(4));
+    shade.setAttribute('cx', (0.5 * x).toFixed(4)); shade.setAttribute('cy', (-0.5 * y).toFixed(4));
+    const el = Math.asin(Math.min(1, Math.max(-1, z))) * 180 / Math.PI, az = Math.atan2(y, x) * 180 / Math.PI;
+    document.getElementById('lightval').textContent = 'elevation ' + el.toFixed(0) + '\u00b0 \u00b7 azimuth ' + az.toFixed(0) + '\u00b0';
+  }
   function draw() { gl.viewport(0, 0, META.width, META.height); gl.uniform3fv(U('light'), state.light);
-    gl.uniform1i(U('mode'), state.mode); gl.drawArrays(gl.TRIANGLES, 0, 3);
+    gl.uniform1i(U('mode'), state.mode); gl.drawArrays(gl.TRIANGLES, 0, 3); showLight();
+    for (const b of modeButtons) b.setAttribute('aria-pressed', String(b.dataset.m === MODES[state.mode]));
     document.getElementById('info').textContent = MODES[state.mode] + '  light ' + state.light.map(v => v.toFixed(3)).join(', '); }
-  function drag(e) { if (!(e.buttons & 1)) return; const r = cv.getBoundingClientRect();
-    let x = 2 * (e.clientX - r.left) / r.width - 1, y = 1 - 2 * (e.clientY - r.top) / r.height; const d = Math.hypot(x, y);
+  // the light from a point of a square-ish region: x right, y up, on the unit disc, z toward the viewer
+  function setLight(e, r) { let x = 2 * (e.clientX - r.left) / r.width - 1, y = 1 - 2 * (e.clientY - r.top) / r.height; const d = Math.hypot(x, y);
     if (d > 0.999) { x *= 0.999 / d; y *= 0.999 / d; } state.light = [x, y, Math.sqrt(Math.max(0, 1 - x * x - y * y))]; state.mode = 0; draw(); }
-  cv.addEventListener('pointerdown', drag); cv.addEventListener('pointermove', drag);
-  for (const b of document.querySelectorAll('button')) b.onclick = () => { state.mode = MODES.indexOf(b.dataset.m); draw(); };
-  window.addEventListener('hashchange', () => { parseHash(); draw(); });
+  function imageRect() {  // the part of the image on the screen (all of it at the fit view)
+    const c = cv.getBoundingClientRect(), v = view.getBoundingClientRect();
+    const l = Math.max(c.left, v.left), t = Math.max(c.top, v.top), r = Math.min(c.right, v.right), b = Math.min(c.bottom, v.bottom);
+    return r - l > 4 && b - t > 4 ? {left: l, top: t, width: r - l, height: b - t} : v;
+  }
+  let drag = null;
+  view.addEventListener('pointerdown', e => {
+    const pan = state.pan || e.shiftKey || e.button === 1 || e.button === 2;
+    if (e.button !== 0 && !pan) return;
+    e.preventDefault(); view.setPointerCapture(e.pointerId);
+    drag = {pan, x: e.clientX, y: e.clientY, rect: imageRect()};
+    if (pan) view.classList.add('panning'); else setLight(e, drag.rect);
+  });
+  view.addEventListener('pointermove', e => {
+    if (!drag) return;
+    if (!drag.pan) { setLight(e, drag.rect); return; }
+    state.cx -= (e.clientX - drag.x) / vt.s; state.cy -= (e.clientY - drag.y) / vt.s; drag.x = e.clientX; drag.y = e.clientY; layout();
+  });
+  const endDrag = () => { drag = null; view.classList.remove('panning'); };
+  view.addEventListener('pointerup', endDrag); view.addEventListener('pointercancel', endDrag);
+  view.addEventListener('contextmenu', e => e.preventDefault());
+  view.addEventListener('wheel', e => { e.preventDefault(); const v = view.getBoundingClientRect();
+    zoomBy(Math.exp(-e.deltaY * (e.deltaMode ? 0.05 : 0.0015)), e.clientX - v.left, e.clientY - v.top); }, {passive: false});
+  pad.addEventListener('pointerdown', e => { e.preventDefault(); pad.setPointerCapture(e.pointerId); setLight(e, padRect()); });
+  pad.addEventListener('pointermove', e => { if (e.buttons & 1) setLight(e, padRect()); });
+  function padRect() { const r = pad.getBoundingClientRect(), k = 1 / 1.12;  // the unit disc inside the viewBox margin
+    return {left: r.left + r.width * (1 - k) / 2, top: r.top + r.height * (1 - k) / 2, width: r.width * k, height: r.height * k}; }
+  document.getElementById('zin').onclick = () => zoomBy(1.5);
+  document.getElementById('zout').onclick = () => zoomBy(1 / 1.5);
+  document.getElementById('fit').onclick = fit;
+  const togglePan = () => { state.pan = !state.pan; panButton.setAttribute('aria-pressed', String(state.pan)); view.classList.toggle('pan', state.pan); };
+  panButton.onclick = togglePan;
+  window.addEventListener('keydown', e => {
+    if (e.ctrlKey || e.metaKey || e.altKey) return;
+    if (e.key === '+' || e.key === '=') zoomBy(1.5); else if (e.key === '-') zoomBy(1 / 1.5);
+    else if (e.key === '0' || e.key === 'f') fit(); else if (e.key === 'p') togglePan(); else return;
+    e.preventDefault();
+  });
+  for (const b of modeButtons) b.onclick = () => { state.mode = MODES.indexOf(b.dataset.m); draw(); };
+  window.addEventListener('hashchange', () => { parseHash(); layout(); draw(); });
   draw();
   // first frame: wait for the GPU (a 1-pixel read) and record the times (ms after navigation start)
   gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
