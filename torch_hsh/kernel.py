@@ -39,8 +39,10 @@ in row chunks of about ``2**20`` output elements written into one
 preallocated ``(N, K)`` output (temporaries stay cache-sized; no full-size
 intermediates are allocated); the backward pass recomputes each chunk with
 autograd (chunk-wise checkpointing; double backward is supported by a full
-recomputation). Small batches and ``torch.func`` transforms use the plain
-autograd path. Outputs are always contiguous ``(..., K)``.
+recomputation). Small batches, ``torch.func`` transforms, forward-mode AD and
+recorded graphs (``torch.compile``, ``torch.export``, ``torch.jit.trace``, where
+the row count is symbolic) use the plain autograd path. Outputs are always
+contiguous ``(..., K)``.
 
 Kernels (:func:`set_backend`, :func:`backend_status`): by default :func:`hsh` runs on the CPU
 on the fused C kernel of :mod:`torch_hsh._native` (normalisation, polar recurrence, azimuth and
@@ -51,8 +53,18 @@ sphericart-torch's real-SH kernel where it is installed, through the identity
 :math:`s' = 2\sqrt{z/(1+z)}` and :math:`\sigma_k = -1` for odd negative m; the Helmholtz bases
 run on the CPU on the fused C kernels of :mod:`torch_hsh._native` (the whole isotropic basis per
 block of rows; the anisotropic pair products over the HSH). The pure-torch recurrences described
-above are the fallback and run inside ``torch.func`` transforms, ``torch.compile`` and double
-backward; both paths agree to rounding.
+above are the fallback and run inside ``torch.func`` transforms, forward-mode AD and double
+backward; both paths agree to rounding. Eagerly the C kernels are called through
+``torch.autograd.Function`` s; a recorded graph (``torch.compile``, ``torch.export``,
+``torch.jit.trace``) holds them as the ``torch.library`` operators ``torch_hsh::hsh``,
+``::isotropic``, ``::isotropic_core`` and ``::pair_products`` (with fake versions for the
+tracer and their backward operators), so that the graph is whole at any number of rows and a
+saved trace or exported program runs the same kernels (``import torch_hsh`` registers them).
+
+Precision: float32 and float64 are computed as given. Half-precision inputs (float16,
+bfloat16) are computed in float32 and returned in their dtype; under ``torch.autocast`` the
+functions return float32 (as autocast's float32 operations do): the recurrences lose about
+three digits in half precision, and float16 overflows at high orders.
 
 Inputs are normalised inside the functions. **Directions strictly below the
 horizon (z < 0) and zero-length vectors evaluate to 0, with zero gradient**:
@@ -689,8 +701,9 @@ def set_backend(name: str) -> None:
             off), and :func:`hsh` on other devices (or without the C kernels) through
             sphericart-torch's spherical-harmonics kernel where that package is installed
             (``pip install torch-hsh[fast]``). Everything else, and every
-            call inside ``torch.func`` transforms or ``torch.compile``, runs the pure-torch
-            kernels. ``"torch"``: the pure-torch kernels everywhere.
+            call inside ``torch.func`` transforms or forward-mode AD, runs the pure-torch
+            kernels; ``torch.compile``, ``torch.export`` and ``torch.jit.trace`` record the C
+            kernels as ``torch.library`` operators. ``"torch"``: the pure-torch kernels everywhere.
 
     The paths agree to rounding (float64 to 1e-12); :func:`backend_status` says which
     one runs.
@@ -969,11 +982,9 @@ def _iso_dirs_native(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Te
 
 
 def _needs_grad(*xs: torch.Tensor) -> bool:
-    """Whether autograd would record an operation on ``xs`` (else a kernel skips ``Function.apply``); always
-    true inside a forward-mode AD level, where ``Function.apply`` says that it has no forward derivative, and
-    under ``torch.jit.trace``."""
-    if getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0 or torch.jit.is_tracing():
-        return True  # (a trace records Function.apply; a bare ctypes call would leave an empty tensor in it)
+    """Whether autograd would record an operation on ``xs`` (else a kernel skips ``Function.apply``). Forward-mode
+    AD and torch.jit.trace do not reach the eager kernels (:func:`_native_ok`): a bare ctypes call would leave
+    no tangent, or an empty tensor in a trace."""
     return torch.is_grad_enabled() and any(x.requires_grad for x in xs)
 
 
@@ -1351,7 +1362,8 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
 
     Returns:
         ``(..., (P+1)**2)`` tensor; entry ``n*n + n + m`` is :math:`H_n^m`.
-        Same dtype and device as ``dirs``; differentiable.
+        Same dtype and device as ``dirs`` (float16 / bfloat16 are computed in float32;
+        float32 under ``torch.autocast``); differentiable.
 
     Example:
         >>> import torch, torch_hsh

@@ -8,8 +8,13 @@ r"""``torch.nn.Module`` layers built on the Helmholtz HSH bases.
   (per-pixel BRDFs predicted by a network).
 
 Both modules are device/dtype agnostic (``.to(...)`` moves everything), save
-and load through ``state_dict``, and work with ``torch.jit.trace`` and
-``torch.compile``. ``torch.jit.script`` is **not** supported: the functional
+and load through ``state_dict``, and work with ``torch.jit.trace`` (and
+``torch.jit.save``), ``torch.compile`` (``fullgraph=True``), ``torch.export``
+(dynamic batch), forward-mode AD and ``DistributedDataParallel``. Under
+``torch.autocast``, and for half-precision (float16 / bfloat16) inputs, coefficients
+or modules (``module.half()``), :class:`HelmholtzBRDF` computes in float32 inside and
+returns the dtype that type promotion gives its inputs (float16 for a float16
+module and inputs), float32 under autocast. ``torch.jit.script`` is **not** supported: the functional
 bases they call validate their inputs in plain Python (``isinstance`` checks,
 ``functools.lru_cache`` constant tables, a global validation switch), which
 TorchScript cannot compile. Use ``torch.jit.trace`` (or ``torch.compile``)
