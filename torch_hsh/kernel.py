@@ -654,7 +654,10 @@ def autocast_enabled(device_type: str) -> bool:
 
 
 def _half(*xs) -> bool:
-    return any(isinstance(x, torch.Tensor) and x.dtype in HALF_DTYPES for x in xs)
+    for x in xs:
+        if getattr(x, "dtype", None) in HALF_DTYPES:
+            return True
+    return False
 
 
 def _in_float32(fn, xs, *args) -> torch.Tensor:
@@ -767,12 +770,12 @@ def backend_status() -> Dict[str, Optional[str]]:
     }
 
 
+_is_compiling = getattr(getattr(torch, "compiler", None), "is_compiling", None) or (lambda: False)
+
+
 def _compiling() -> bool:
-    """Inside a torch.compile or torch.export trace (the tensors have no data)."""
-    try:
-        return bool(torch.compiler.is_compiling()) or bool(getattr(torch.compiler, "is_exporting", bool)())
-    except AttributeError:  # pragma: no cover - old torch
-        return False
+    """Inside a torch.compile or torch.export trace (strict or not; the tensors have no data)."""
+    return _is_compiling()
 
 
 def _forward_ad() -> bool:
@@ -783,7 +786,7 @@ def _forward_ad() -> bool:
 def _graph() -> bool:
     """A graph is being recorded: torch.compile, torch.export or torch.jit.trace (the row count is symbolic, or
     the recorded call must be one that the graph can hold)."""
-    return _compiling() or torch.jit.is_tracing()
+    return _is_compiling() or torch.jit.is_tracing()
 
 
 def _native_ok(t: torch.Tensor) -> bool:

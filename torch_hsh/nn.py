@@ -350,13 +350,20 @@ class HelmholtzBRDF(nn.Module):
         directions, the coefficients used or the module are half precision (float16/bfloat16); else None.
         ``out`` is the dtype that torch's type promotion gives the inputs and coefficients (float16 for float16
         inputs and module), under autocast float32 at least (as autocast's float32 operations)."""
-        ts = [t for t in dirs if isinstance(t, torch.Tensor)]
-        if len(ts) != len(dirs) or (coeffs is not None and not isinstance(coeffs, torch.Tensor)):
+        c = self.coefficients if coeffs is None else coeffs
+        half = getattr(c, "dtype", None) in HALF_DTYPES
+        for t in dirs:
+            half = half or getattr(t, "dtype", None) in HALF_DTYPES
+        if not isinstance(dirs[0], torch.Tensor):
             return None  # the usual checks name the argument
-        ts.append(self.coefficients if coeffs is None else coeffs)
-        amp = autocast_enabled(ts[0].device.type)
-        if not amp and not any(t.dtype in HALF_DTYPES for t in ts):
+        dev = "cpu" if dirs[0].is_cpu else dirs[0].device.type  # (is_cpu: a fraction of device.type's cost)
+        if not (half or autocast_enabled(dev)):
             return None
+        ts = [t for t in dirs if isinstance(t, torch.Tensor)]
+        if len(ts) != len(dirs) or not isinstance(c, torch.Tensor):
+            return None
+        ts.append(c)
+        amp = autocast_enabled(dev)
         out = ts[0].dtype
         for t in ts[1:]:
             out = torch.promote_types(out, t.dtype)
@@ -387,7 +394,8 @@ class HelmholtzBRDF(nn.Module):
                 f"`{name}` has dtype {t.dtype} but the module's coefficients are {c.dtype}; "
                 f"convert the input or call module.to({t.dtype})"
             )
-        self._check_device(t, name)
+        if t.device != c.device:
+            self._check_device(t, name)
 
     def _check_device(self, t: torch.Tensor, name: str) -> None:
         c = self.coefficients
@@ -472,7 +480,9 @@ class HelmholtzBRDF(nn.Module):
         if mixed is not None:
             return self._in_float32(mixed, lambda a, b, c: self._combine(self._basis(a, b), c),
                                     {"wi": wi, "wo": wo, "coeffs": self._own(coeffs)})
-        return self._combine(self.basis(wi, wo), coeffs)
+        self._check_like(wi, "wi")
+        self._check_like(wo, "wo")
+        return self._combine(self._basis(wi, wo), coeffs)
 
     def forward_world(
         self,
