@@ -156,7 +156,8 @@ def check_shape(x, name: str, *shapes: Sequence[Dim], sizes: Optional[Dict[str, 
     shape = getattr(x, "shape", None)
     if shape is None:
         raise TypeError(f"`{name}` must be a tensor, got {type(x).__name__}")
-    shape = tuple(int(s) for s in shape)
+    # sizes as ints; a symbolic size (torch.compile / torch.export) stays symbolic: int() would specialise it
+    shape = tuple(s if isinstance(s, torch.SymInt) else int(s) for s in shape)
     known = dict(sizes or {})
     for want in shapes:
         bound = _match_shape(shape, tuple(want), known)

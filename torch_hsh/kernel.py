@@ -39,8 +39,10 @@ in row chunks of about ``2**20`` output elements written into one
 preallocated ``(N, K)`` output (temporaries stay cache-sized; no full-size
 intermediates are allocated); the backward pass recomputes each chunk with
 autograd (chunk-wise checkpointing; double backward is supported by a full
-recomputation). Small batches and ``torch.func`` transforms use the plain
-autograd path. Outputs are always contiguous ``(..., K)``.
+recomputation). Small batches, ``torch.func`` transforms, forward-mode AD and
+recorded graphs (``torch.compile``, ``torch.export``, ``torch.jit.trace``, where
+the row count is symbolic) use the plain autograd path. Outputs are always
+contiguous ``(..., K)``.
 
 Kernels (:func:`set_backend`, :func:`backend_status`): by default :func:`hsh` runs on the CPU
 on the fused C kernel of :mod:`torch_hsh._native` (normalisation, polar recurrence, azimuth and
@@ -51,8 +53,18 @@ sphericart-torch's real-SH kernel where it is installed, through the identity
 :math:`s' = 2\sqrt{z/(1+z)}` and :math:`\sigma_k = -1` for odd negative m; the Helmholtz bases
 run on the CPU on the fused C kernels of :mod:`torch_hsh._native` (the whole isotropic basis per
 block of rows; the anisotropic pair products over the HSH). The pure-torch recurrences described
-above are the fallback and run inside ``torch.func`` transforms, ``torch.compile`` and double
-backward; both paths agree to rounding.
+above are the fallback and run inside ``torch.func`` transforms, forward-mode AD and double
+backward; both paths agree to rounding. Eagerly the C kernels are called through
+``torch.autograd.Function`` s; a recorded graph (``torch.compile``, ``torch.export``,
+``torch.jit.trace``) holds them as the ``torch.library`` operators ``torch_hsh::hsh``,
+``::isotropic``, ``::isotropic_core`` and ``::pair_products`` (with fake versions for the
+tracer and their backward operators), so that the graph is whole at any number of rows and a
+saved trace or exported program runs the same kernels (``import torch_hsh`` registers them).
+
+Precision: float32 and float64 are computed as given. Half-precision inputs (float16,
+bfloat16) are computed in float32 and returned in their dtype; under ``torch.autocast`` the
+functions return float32 (as autocast's float32 operations do): the recurrences lose about
+three digits in half precision, and float16 overflows at high orders.
 
 Inputs are normalised inside the functions. **Directions strictly below the
 horizon (z < 0) and zero-length vectors evaluate to 0, with zero gradient**:
@@ -603,9 +615,10 @@ def _run_rows(fn, K: int, *inputs: torch.Tensor) -> torch.Tensor:
 
     ``fn`` returns a feature-major ``(K, n)`` block; the result is ``(N, K)`` contiguous.
     """
-    n = inputs[0].shape[0]
     rows = max(1, _CHUNK_ELEMS // max(K, 1))
-    if n <= rows or _functorch_active():
+    # unchunked: where the rows are symbolic (a graph; a Python loop over them would be unrolled or break it), or
+    # where ``_RowChunked`` (backward only) cannot run (torch.func transforms, forward-mode AD)
+    if _graph() or _functorch_active() or _forward_ad() or inputs[0].shape[0] <= rows:
         return fn(*inputs).t().contiguous()
     return _RowChunked.apply(lambda *xs: fn(*xs).t(), K, rows, *inputs)
 
@@ -626,6 +639,41 @@ def _check_group(named, dirs: bool = True, defer_values: bool = False) -> bool:
     for nm, t in named:
         check_tensor(t, nm, last_dim=3 if dirs else None, min_dims=1 if dirs else 0, allow_nonfinite=deferred)
     return deferred
+
+
+#: Half-precision dtypes: computed in float32 (see :func:`_in_float32`).
+HALF_DTYPES = (torch.float16, torch.bfloat16)
+
+
+def autocast_enabled(device_type: str) -> bool:
+    """Whether ``torch.autocast`` is on for ``device_type`` (``"cpu"``, ``"cuda"``, ...)."""
+    try:
+        return bool(torch.is_autocast_enabled(device_type))
+    except TypeError:  # pragma: no cover - torch < 2.4: no device argument
+        return bool(torch.is_autocast_cpu_enabled() if device_type == "cpu" else torch.is_autocast_enabled())
+
+
+def _half(*xs) -> bool:
+    for x in xs:
+        if getattr(x, "dtype", None) in HALF_DTYPES:
+            return True
+    return False
+
+
+def _in_float32(fn, xs, *args) -> torch.Tensor:
+    """``fn(*xs, *args)`` with the half-precision tensors of ``xs`` in float32; the result in the dtype that torch's
+    type promotion gives ``xs`` (float16 for float16 inputs), or, under ``torch.autocast``, in float32 at least
+    (as autocast's float32 operations). The recurrences and products of the bases lose about three digits
+    against float32 when evaluated in float16 or bfloat16, and float16 overflows at high orders."""
+    out = xs[0].dtype
+    for x in xs[1:]:
+        out = torch.promote_types(out, x.dtype)
+    if autocast_enabled(xs[0].device.type):
+        out = torch.promote_types(out, torch.float32)
+    ys = [x.float() if x.dtype in HALF_DTYPES else x for x in xs]
+    if len(xs) == 2 and xs[0] is xs[1]:  # one direction set stays one tensor (``wi is wo``)
+        ys[1] = ys[0]
+    return fn(*ys, *args).to(out)
 
 
 def _recheck(flagged: bool, named) -> None:
@@ -656,8 +704,9 @@ def set_backend(name: str) -> None:
             off), and :func:`hsh` on other devices (or without the C kernels) through
             sphericart-torch's spherical-harmonics kernel where that package is installed
             (``pip install torch-hsh[fast]``). Everything else, and every
-            call inside ``torch.func`` transforms or ``torch.compile``, runs the pure-torch
-            kernels. ``"torch"``: the pure-torch kernels everywhere.
+            call inside ``torch.func`` transforms or forward-mode AD, runs the pure-torch
+            kernels; ``torch.compile``, ``torch.export`` and ``torch.jit.trace`` record the C
+            kernels as ``torch.library`` operators. ``"torch"``: the pure-torch kernels everywhere.
 
     The paths agree to rounding (float64 to 1e-12); :func:`backend_status` says which
     one runs.
@@ -721,22 +770,51 @@ def backend_status() -> Dict[str, Optional[str]]:
     }
 
 
+_is_compiling = getattr(getattr(torch, "compiler", None), "is_compiling", None) or (lambda: False)
+
+
 def _compiling() -> bool:
-    try:
-        return bool(torch.compiler.is_compiling())
-    except AttributeError:  # pragma: no cover - old torch
-        return False
+    """Inside a torch.compile or torch.export trace (strict or not; the tensors have no data)."""
+    return _is_compiling()
+
+
+def _forward_ad() -> bool:
+    """Inside a forward-mode AD level (``torch.autograd.forward_ad.dual_level``)."""
+    return getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0
+
+
+def _graph() -> bool:
+    """A graph is being recorded: torch.compile, torch.export or torch.jit.trace (the row count is symbolic, or
+    the recorded call must be one that the graph can hold)."""
+    return _is_compiling() or torch.jit.is_tracing()
 
 
 def _native_ok(t: torch.Tensor) -> bool:
-    """The fused C kernels apply: CPU float tensors outside functorch / compile."""
+    """The fused C kernels apply through their eager ``autograd.Function`` s: CPU float tensors outside functorch,
+    forward-mode AD and graph recording (see :func:`_graph_ok`)."""
     return (
         _BACKEND["name"] == "auto"
         and t.device.type == "cpu"
         and t.dtype in (torch.float32, torch.float64)
         and not _functorch_active()
-        and not _compiling()
+        and not _graph()
+        and not _forward_ad()
         and _native.library() is not None
+    )
+
+
+def _graph_ok(t: torch.Tensor) -> bool:
+    """The fused C kernels apply as the ``torch.library`` operators :data:`_OPS`: as :func:`_native_ok`, while a
+    graph is being recorded."""
+    return (
+        _BACKEND["name"] == "auto"
+        and _OPS is not None
+        and _graph()
+        and t.device.type == "cpu"
+        and t.dtype in (torch.float32, torch.float64)
+        and not _functorch_active()
+        and not _forward_ad()
+        and _native.available()
     )
 
 
@@ -814,17 +892,36 @@ def _aliases(xs):
     return tuple(x.view_as(x) for x in xs)
 
 
-class _IsoCore(torch.autograd.Function):
+def _iso_core_fwd(zi, zo, a, rho, sio, valid, order: int) -> torch.Tensor:
     """``kernels.c`` iso_core: (zi, zo, a, rho, sio, valid) -> (N, K); see :func:`_iso_kernel_t`."""
+    ins = [x.contiguous() for x in (zi, zo, a, rho, sio)]
+    v = valid.to(torch.uint8).contiguous()
+    K, tab = _iso_core_args(order, zi.dtype)
+    out = zi.new_empty((zi.shape[0], K))
+    fn = getattr(_native.library(), "iso_core_fwd_" + _suffix(zi.dtype))
+    _native.parallel_rows(fn, zi.shape[0], *[_native.ptr(x) for x in ins], _native.ptr(v), *tab, _native.ptr(out))
+    return out
+
+
+def _iso_core_bwd(zi, zo, a, rho, sio, valid, gout, order: int):
+    """The gradients of :func:`_iso_core_fwd` with respect to (zi, zo, a, rho, sio), from ``gout (N, K)``."""
+    ins = [x.contiguous() for x in (zi, zo, a, rho, sio)]
+    v = valid.to(torch.uint8).contiguous()
+    g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
+    outs = [torch.empty_like(x) for x in ins]
+    _, tab = _iso_core_args(order, g.dtype)
+    fn = getattr(_native.library(), "iso_core_bwd_" + _suffix(g.dtype))
+    _native.parallel_rows(fn, g.shape[0], *[_native.ptr(x) for x in ins], _native.ptr(v), *tab,
+                          _native.ptr(g), g.stride(0), g.stride(1), *[_native.ptr(o) for o in outs])
+    return outs
+
+
+class _IsoCore(torch.autograd.Function):
+    """:func:`_iso_core_fwd` with its backward (eager calls; see :func:`_route`)."""
 
     @staticmethod
     def forward(ctx, zi, zo, a, rho, sio, valid, order):
-        ins = [x.contiguous() for x in (zi, zo, a, rho, sio)]
-        v = valid.to(torch.uint8).contiguous()
-        K, tab = _iso_core_args(order, zi.dtype)
-        out = zi.new_empty((zi.shape[0], K))
-        fn = getattr(_native.library(), "iso_core_fwd_" + _suffix(zi.dtype))
-        _native.parallel_rows(fn, zi.shape[0], *[_native.ptr(x) for x in ins], _native.ptr(v), *tab, _native.ptr(out))
+        out = _iso_core_fwd(zi, zo, a, rho, sio, valid, order)
         ctx.order = order
         ctx.save_for_backward(zi, zo, a, rho, sio, valid)
         return out
@@ -846,14 +943,7 @@ class _IsoCore(torch.autograd.Function):
             for i, g in zip(need, gs):
                 grads[i] = torch.zeros_like(xs[i]) if g is None else g
             return tuple(grads)
-        ins = [x.contiguous() for x in xs]
-        v = valid.to(torch.uint8).contiguous()
-        g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
-        outs = [torch.empty_like(x) for x in ins]
-        _, tab = _iso_core_args(ctx.order, g.dtype)
-        fn = getattr(_native.library(), "iso_core_bwd_" + _suffix(g.dtype))
-        _native.parallel_rows(fn, g.shape[0], *[_native.ptr(x) for x in ins], _native.ptr(v), *tab,
-                              _native.ptr(g), g.stride(0), g.stride(1), *[_native.ptr(o) for o in outs])
+        outs = _iso_core_bwd(*xs, valid, gout, ctx.order)
         for i in need:
             grads[i] = outs[i]
         return tuple(grads)
@@ -895,11 +985,9 @@ def _iso_dirs_native(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Te
 
 
 def _needs_grad(*xs: torch.Tensor) -> bool:
-    """Whether autograd would record an operation on ``xs`` (else a kernel skips ``Function.apply``); always
-    true inside a forward-mode AD level, where ``Function.apply`` says that it has no forward derivative, and
-    under ``torch.jit.trace``."""
-    if getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0 or torch.jit.is_tracing():
-        return True  # (a trace records Function.apply; a bare ctypes call would leave an empty tensor in it)
+    """Whether autograd would record an operation on ``xs`` (else a kernel skips ``Function.apply``). Forward-mode
+    AD and torch.jit.trace do not reach the eager kernels (:func:`_native_ok`): a bare ctypes call would leave
+    no tangent, or an empty tensor in a trace."""
     return torch.is_grad_enabled() and any(x.requires_grad for x in xs)
 
 
@@ -932,16 +1020,21 @@ class _IsoDirs(torch.autograd.Function):
                     g = next(gs)
                     out[i] = torch.zeros_like(w) if g is None else g
             return tuple(out)
-        n, dt = wi.shape[0], wi.dtype
-        gwi = torch.empty((n, 3), dtype=dt)
-        gwo = torch.empty((n, 3), dtype=dt)
-        wi_c, wo_c = wi.contiguous(), wo.contiguous()  # kept alive across the call
-        g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
-        fn, head, tab = _iso_dirs_kernel("bwd", ctx.order, dt)
-        _native.parallel_rows(fn, n, *head, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
-                              _horizon_eps(dt), *tab, _native.ptr(g), g.stride(0), g.stride(1),
-                              _native.ptr(gwi), _native.ptr(gwo))
-        return gwi, gwo, None
+        return (*_iso_dirs_native_bwd(wi, wo, gout, ctx.order), None)
+
+
+def _iso_dirs_native_bwd(wi: torch.Tensor, wo: torch.Tensor, gout: torch.Tensor, order: int):
+    """The fused backward of :class:`_IsoDirs`: the gradients ``(N, 3), (N, 3)`` from ``gout (N, K)``."""
+    n, dt = wi.shape[0], wi.dtype
+    gwi = torch.empty((n, 3), dtype=dt)
+    gwo = torch.empty((n, 3), dtype=dt)
+    wi_c, wo_c = wi.contiguous(), wo.contiguous()  # kept alive across the call
+    g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
+    fn, head, tab = _iso_dirs_kernel("bwd", order, dt)
+    _native.parallel_rows(fn, n, *head, _native.ptr(wi_c), _native.ptr(wo_c), torch.finfo(dt).tiny * 1e6,
+                          _horizon_eps(dt), *tab, _native.ptr(g), g.stride(0), g.stride(1),
+                          _native.ptr(gwi), _native.ptr(gwo))
+    return gwi, gwo
 
 
 def _remap_torch(d: torch.Tensor):
@@ -1016,13 +1109,7 @@ class _HshNative(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, d, order):
-        dc = d.contiguous()
-        n, dt = d.shape[0], d.dtype
-        out = d.new_empty((n, (order + 1) ** 2))
-        fn = getattr(_native.library(), "hsh_fwd_" + _suffix(dt))
-        bad = _native.parallel_rows(fn, n, order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6,
-                                    *_native_hsh_args(order, dt), _native.ptr(out))
-        _recheck(bad, [("dirs", d)])
+        out = _hsh_native_fwd(d, order)
         ctx.order = order
         ctx.save_for_backward(d)
         return out
@@ -1037,15 +1124,31 @@ class _HshNative(torch.autograd.Function):
                 return torch.zeros_like(d), None
             (gd,) = torch.autograd.grad(y, [d], gout, create_graph=True, allow_unused=True)
             return (torch.zeros_like(d) if gd is None else gd), None
-        n, dt = d.shape[0], d.dtype
-        dc = d.contiguous()
-        gd = torch.empty_like(dc)
-        g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
-        fn = getattr(_native.library(), "hsh_bwd_" + _suffix(dt))
-        _native.parallel_rows(fn, n, ctx.order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6, _horizon_eps(dt),
-                              *_native_hsh_args(ctx.order, dt), _native.ptr(g), g.stride(0), g.stride(1),
-                              _native.ptr(gd))
-        return gd, None
+        return _hsh_native_bwd(d, gout, ctx.order), None
+
+
+def _hsh_native_fwd(d: torch.Tensor, order: int) -> torch.Tensor:
+    """``kernels.c`` hsh_fwd: the HSH of flat (N, 3) directions, ``(N, K)``."""
+    dc = d.contiguous()
+    n, dt = d.shape[0], d.dtype
+    out = d.new_empty((n, (order + 1) ** 2))
+    fn = getattr(_native.library(), "hsh_fwd_" + _suffix(dt))
+    bad = _native.parallel_rows(fn, n, order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6,
+                                *_native_hsh_args(order, dt), _native.ptr(out))
+    _recheck(bad, [("dirs", d)])
+    return out
+
+
+def _hsh_native_bwd(d: torch.Tensor, gout: torch.Tensor, order: int) -> torch.Tensor:
+    """``kernels.c`` hsh_bwd: the gradient ``(N, 3)`` of :func:`_hsh_native_fwd` from ``gout (N, K)``."""
+    n, dt = d.shape[0], d.dtype
+    dc = d.contiguous()
+    gd = torch.empty_like(dc)
+    g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()  # expanded gradients stay unmaterialised
+    fn = getattr(_native.library(), "hsh_bwd_" + _suffix(dt))
+    _native.parallel_rows(fn, n, order, _native.ptr(dc), torch.finfo(dt).tiny * 1e6, _horizon_eps(dt),
+                          *_native_hsh_args(order, dt), _native.ptr(g), g.stride(0), g.stride(1), _native.ptr(gd))
+    return gd
 
 
 class _PairProducts(torch.autograd.Function):
@@ -1053,17 +1156,8 @@ class _PairProducts(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, A, B, order):
-        Ac, Bc = A.contiguous(), B.contiguous()
-        j, k, c = _aniso_gather(order)
-        cpu, dt = torch.device("cpu"), A.dtype
-        tabs = (_const(("nat_pj", order), j, cpu, torch.int32), _const(("nat_pk", order), k, cpu, torch.int32),
-                _const(("an_c", order), c, cpu, dt))
-        n, H, Q = A.shape[0], A.shape[1], len(j)
-        out = A.new_empty((n, Q))
-        fn = getattr(_native.library(), "pair_fwd_" + _suffix(dt))
-        _native.parallel_rows(fn, n, _native.ptr(Ac), _native.ptr(Bc), H, Q, *[_native.ptr(t) for t in tabs],
-                              _native.ptr(out))
-        ctx.order, ctx.tabs = order, tabs
+        out = _pair_native_fwd(A, B, order)
+        ctx.order, ctx.tabs = order, _pair_tables(order, A.dtype)
         ctx.save_for_backward(A, B)
         return out
 
@@ -1077,14 +1171,141 @@ class _PairProducts(torch.autograd.Function):
             need = [t for t, nd in zip((A, B), ctx.needs_input_grad[:2]) if nd]
             gs = iter(torch.autograd.grad(y, need, gout, create_graph=True))
             return (next(gs) if ctx.needs_input_grad[0] else None, next(gs) if ctx.needs_input_grad[1] else None, None)
-        Ac, Bc = A.contiguous(), B.contiguous()
-        g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()
-        gA, gB = torch.empty_like(Ac), torch.empty_like(Bc)
-        fn = getattr(_native.library(), "pair_bwd_" + _suffix(A.dtype))
-        _native.parallel_rows(fn, A.shape[0], _native.ptr(Ac), _native.ptr(Bc), A.shape[1], g.shape[1],
-                              *[_native.ptr(t) for t in ctx.tabs], _native.ptr(g), g.stride(0), g.stride(1),
-                              _native.ptr(gA), _native.ptr(gB))
-        return gA, gB, None
+        return (*_pair_native_bwd(A, B, gout, ctx.order), None)
+
+
+def _pair_tables(order: int, dt: torch.dtype):
+    """The column pairs ``j, k`` (int32) and the scales ``c`` of the anisotropic basis, for ``kernels.c`` pair."""
+    j, k, c = _aniso_gather(order)
+    cpu = torch.device("cpu")
+    return (_const(("nat_pj", order), j, cpu, torch.int32), _const(("nat_pk", order), k, cpu, torch.int32),
+            _const(("an_c", order), c, cpu, dt))
+
+
+def _pair_native_fwd(A: torch.Tensor, B: torch.Tensor, order: int) -> torch.Tensor:
+    """``kernels.c`` pair_fwd: ``out[:, p] = c_p (A[:, j_p] B[:, k_p] + A[:, k_p] B[:, j_p])``, ``(N, Q)``."""
+    Ac, Bc = A.contiguous(), B.contiguous()
+    tabs = _pair_tables(order, A.dtype)
+    n, H, Q = A.shape[0], A.shape[1], tabs[0].shape[0]
+    out = A.new_empty((n, Q))
+    fn = getattr(_native.library(), "pair_fwd_" + _suffix(A.dtype))
+    _native.parallel_rows(fn, n, _native.ptr(Ac), _native.ptr(Bc), H, Q, *[_native.ptr(t) for t in tabs],
+                          _native.ptr(out))
+    return out
+
+
+def _pair_native_bwd(A: torch.Tensor, B: torch.Tensor, gout: torch.Tensor, order: int):
+    """``kernels.c`` pair_bwd: the gradients of :func:`_pair_native_fwd` with respect to ``A`` and ``B``."""
+    Ac, Bc = A.contiguous(), B.contiguous()
+    tabs = _pair_tables(order, A.dtype)
+    g = gout if gout.stride(-1) in (0, 1) else gout.contiguous()
+    gA, gB = torch.empty_like(Ac), torch.empty_like(Bc)
+    fn = getattr(_native.library(), "pair_bwd_" + _suffix(A.dtype))
+    _native.parallel_rows(fn, A.shape[0], _native.ptr(Ac), _native.ptr(Bc), A.shape[1], g.shape[1],
+                          *[_native.ptr(t) for t in tabs], _native.ptr(g), g.stride(0), g.stride(1),
+                          _native.ptr(gA), _native.ptr(gB))
+    return gA, gB
+
+
+# --------------------------------------------------------------------------
+# The C kernels as torch.library operators (torch.compile, torch.export, torch.jit.trace)
+# --------------------------------------------------------------------------
+def _torch_vjp(fn, inputs, needs, gout):
+    """A differentiable backward (``create_graph``) of a C kernel: the vector-Jacobian product of its torch kernel
+    ``fn`` at ``inputs`` (through :func:`_aliases`); zeros for an input that ``fn`` does not use, None for one
+    that needs no gradient."""
+    xs = _aliases(inputs)
+    y = fn(*xs)
+    want = [x for x, nd in zip(xs, needs) if nd]
+    gs = iter(torch.autograd.grad(y, want, gout, create_graph=True, allow_unused=True) if y.requires_grad
+              else [None] * len(want))
+    out = []
+    for x, nd in zip(xs, needs):
+        g = next(gs) if nd else None
+        out.append(torch.zeros_like(x) if nd and g is None else g)
+    return out
+
+
+def _define_ops():
+    """The operators ``torch_hsh::hsh``, ``::isotropic``, ``::isotropic_core`` and ``::pair_products`` (each with its
+    ``*_backward``), or None on a torch without ``torch.library.custom_op`` (< 2.4)."""
+    lib = torch.library
+    if not (hasattr(lib, "custom_op") and hasattr(lib, "register_autograd")):
+        return None
+
+    def op(name, schema, fn, fake):
+        o = lib.custom_op("torch_hsh::" + name, fn, mutates_args=(), device_types="cpu", schema=schema)
+        o.register_fake(fake)
+        return o
+
+    empty = torch.empty_like
+    ops = {
+        "hsh": op("hsh", "(Tensor dirs, int order) -> Tensor", _hsh_native_fwd,
+                  lambda d, order: d.new_empty((d.shape[0], (order + 1) ** 2))),
+        "hsh_backward": op("hsh_backward", "(Tensor dirs, Tensor grad, int order) -> Tensor", _hsh_native_bwd,
+                           lambda d, g, order: empty(d)),
+        "isotropic": op("isotropic", "(Tensor wi, Tensor wo, int order) -> Tensor", _iso_dirs_native,
+                        lambda wi, wo, order: wi.new_empty((wi.shape[0], num_isotropic(order)))),
+        "isotropic_backward": op("isotropic_backward", "(Tensor wi, Tensor wo, Tensor grad, int order) -> (Tensor, Tensor)",
+                                 _iso_dirs_native_bwd, lambda wi, wo, g, order: (empty(wi), empty(wo))),
+        "isotropic_core": op("isotropic_core", "(Tensor zi, Tensor zo, Tensor a, Tensor rho, Tensor sio, Tensor valid, "
+                             "int order) -> Tensor", _iso_core_fwd,
+                             lambda zi, *rest: zi.new_empty((zi.shape[0], num_isotropic(rest[-1])))),
+        "isotropic_core_backward": op("isotropic_core_backward", "(Tensor zi, Tensor zo, Tensor a, Tensor rho, "
+                                      "Tensor sio, Tensor valid, Tensor grad, int order) -> "
+                                      "(Tensor, Tensor, Tensor, Tensor, Tensor)",
+                                      lambda *xs: tuple(_iso_core_bwd(*xs)), lambda *xs: tuple(empty(x) for x in xs[:5])),
+        "pair_products": op("pair_products", "(Tensor A, Tensor B, int order) -> Tensor", _pair_native_fwd,
+                            lambda A, B, order: A.new_empty((A.shape[0], num_anisotropic(order)))),
+        "pair_products_backward": op("pair_products_backward", "(Tensor A, Tensor B, Tensor grad, int order) -> "
+                                     "(Tensor, Tensor)", _pair_native_bwd, lambda A, B, g, order: (empty(A), empty(B))),
+    }
+
+    def save(ctx, inputs, output):  # every operator: tensors, then the order
+        ctx.order = inputs[-1]
+        ctx.save_for_backward(*inputs[:-1])
+
+    def hsh_bwd(ctx, g):
+        (d,) = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph
+            return _torch_vjp(lambda x: _hsh_flat_t(x, ctx.order).t(), (d,), (True,), g)[0], None
+        return ops["hsh_backward"](d, g, ctx.order), None
+
+    def iso_bwd(ctx, g):
+        wi, wo = ctx.saved_tensors
+        if torch.is_grad_enabled():
+            fn = lambda a, b: _iso_kernel_t(*_iso_geom_torch(a, b), ctx.order).t()  # noqa: E731
+            return (*_torch_vjp(fn, (wi, wo), ctx.needs_input_grad[:2], g), None)
+        return (*ops["isotropic_backward"](wi, wo, g, ctx.order), None)
+
+    def core_bwd(ctx, g):
+        saved = ctx.saved_tensors
+        if torch.is_grad_enabled():
+            fn = lambda *xs: _iso_kernel_t(*xs, saved[5], ctx.order).t()  # noqa: E731
+            return (*_torch_vjp(fn, saved[:5], ctx.needs_input_grad[:5], g), None, None)
+        return (*ops["isotropic_core_backward"](*saved, g, ctx.order), None, None)
+
+    def pair_bwd(ctx, g):
+        A, B = ctx.saved_tensors
+        if torch.is_grad_enabled():
+            j, k, c = (_const(key, v, A.device, dt) for key, v, dt in zip(
+                (("an_j", ctx.order), ("an_k", ctx.order), ("an_c", ctx.order)), _aniso_gather(ctx.order),
+                (None, None, A.dtype)))
+            fn = lambda a, b: (a.index_select(1, j) * b.index_select(1, k)  # noqa: E731
+                               + a.index_select(1, k) * b.index_select(1, j)) * c
+            return (*_torch_vjp(fn, (A, B), ctx.needs_input_grad[:2], g), None)
+        return (*ops["pair_products_backward"](A, B, g, ctx.order), None)
+
+    for name, bwd in (("hsh", hsh_bwd), ("isotropic", iso_bwd), ("isotropic_core", core_bwd),
+                      ("pair_products", pair_bwd)):
+        ops[name].register_autograd(bwd, setup_context=save)
+    return ops
+
+
+#: The C kernels as ``torch.library`` operators: what a torch.compile / torch.export graph or a torch.jit.trace
+#: records in place of the eager ``autograd.Function`` s above (which these graphs cannot hold). Opaque to the
+#: tracer (their fake versions give the output shapes), so the rows stay unchunked and symbolic. None: torch < 2.4.
+_OPS = _define_ops()
 
 
 @lru_cache(maxsize=None)
@@ -1099,7 +1320,8 @@ _SPH_CALC: Dict[int, object] = {}
 
 
 def _hsh_fast_ok(d: torch.Tensor) -> bool:
-    return _BACKEND["name"] == "auto" and not _functorch_active() and _sphericart_module() is not None
+    return (_BACKEND["name"] == "auto" and not _functorch_active() and not _forward_ad()
+            and _sphericart_module() is not None)
 
 
 def _hsh_sphericart(d: torch.Tensor, order: int) -> torch.Tensor:
@@ -1143,7 +1365,8 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
 
     Returns:
         ``(..., (P+1)**2)`` tensor; entry ``n*n + n + m`` is :math:`H_n^m`.
-        Same dtype and device as ``dirs``; differentiable.
+        Same dtype and device as ``dirs`` (float16 / bfloat16 are computed in float32;
+        float32 under ``torch.autocast``); differentiable.
 
     Example:
         >>> import torch, torch_hsh
@@ -1153,6 +1376,8 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
         >>> abs(float(y[0]) - (1 / (2 * math.pi)) ** 0.5) < 1e-6  # H_0^0 = 1/sqrt(2 pi)
         True
     """
+    if _half(dirs):
+        return _in_float32(hsh, (dirs,), order)
     _check_group([("dirs", dirs)], defer_values=True)
     order = check_order(order)
     lead = dirs.shape[:-1]
@@ -1160,6 +1385,8 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
     flat = _flat(dirs, lead)
     if _native_ok(flat):
         out = _HshNative.apply(flat, order)  # checks the values that the kernel flags
+    elif _graph_ok(flat):
+        out = _OPS["hsh"](flat, order)  # type: ignore[index]
     elif _hsh_fast_ok(flat):
         out = _hsh_sphericart(flat, order)
     else:
@@ -1194,19 +1421,23 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
         >>> torch_hsh.helmholtz_isotropic(wi, wo, 3).shape
         torch.Size([10, 20])
     """
+    if _half(wi, wo):
+        return _in_float32(helmholtz_isotropic, (wi, wo), order)
     _check_group([("wi", wi), ("wo", wo)], defer_values=True)
     order = check_order(order)
     K = (order + 1) * (order + 2) * (order + 3) // 6
     # fused C kernels (geometry, then the basis), else the torch kernel in row chunks
     return _pair_basis(wi, wo, K,
                        lambda a, b: _IsoDirs.apply(a, b, order) if _needs_grad(a, b) else _iso_dirs_native(a, b, order),
+                       lambda a, b: _OPS["isotropic"](a, b, order),  # type: ignore[index]
                        lambda a, b: _iso_dirs(a, b, order))
 
 
-def _pair_basis(wi, wo, K, native, flat):
+def _pair_basis(wi, wo, K, native, graph, flat):
     """A basis of two direction sets ``(*S, 3), (*S', 3) -> (*broadcast, K)``: ``native(a, b)`` (C kernels) on the
-    flat rows where :func:`_native_ok`, else ``flat(a, b)`` in row chunks. One direction set (``wi is wo``) is
-    passed as the same tensor twice, so that a kernel computes its tables once."""
+    flat rows where :func:`_native_ok`, ``graph(a, b)`` (the same as operators) where :func:`_graph_ok`, else
+    ``flat(a, b)`` in row chunks. One direction set (``wi is wo``) is passed as the same tensor twice, so that a
+    kernel computes its tables once."""
     if wi is wo:
         lead = wi.shape[:-1]
         a = b = _flat(wi, lead)
@@ -1214,6 +1445,8 @@ def _pair_basis(wi, wo, K, native, flat):
         lead, a, b = _broadcast_pair(wi, wo)
     if _native_ok(wi):
         out = native(a, b)
+    elif _graph_ok(wi):
+        out = graph(a, b)
     elif a is b:
         out = _run_rows(lambda w: flat(w, w), K, a)
     else:
@@ -1242,6 +1475,8 @@ def helmholtz_isotropic_cosines(
         >>> torch_hsh.helmholtz_isotropic_cosines(c, c, torch.tensor([-1.0]), 2).shape
         torch.Size([1, 10])
     """
+    if _half(cos_i, cos_o, cos_dphi):
+        return _in_float32(helmholtz_isotropic_cosines, (cos_i, cos_o, cos_dphi), order)
     _check_group([("cos_i", cos_i), ("cos_o", cos_o), ("cos_dphi", cos_dphi)], dirs=False)
     order = check_order(order)
     lead = broadcast_shapes([("cos_i", cos_i.shape), ("cos_o", cos_o.shape), ("cos_dphi", cos_dphi.shape)])
@@ -1249,6 +1484,8 @@ def helmholtz_isotropic_cosines(
     K = (order + 1) * (order + 2) * (order + 3) // 6
     if _native_ok(zi):
         out = _IsoCore.apply(*_iso_cosines_geom(zi, zo, cd), order)
+    elif _graph_ok(zi):
+        out = _OPS["isotropic_core"](*_iso_cosines_geom(zi, zo, cd), order)  # type: ignore[index]
     else:
         out = _run_rows(lambda a, b, c: _iso_cosines_flat(a, b, c, order), K, zi, zo, cd)
     return _shaped(out, lead, K)
@@ -1277,18 +1514,22 @@ def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> tor
         >>> torch_hsh.helmholtz_anisotropic(w, w, 1).shape
         torch.Size([1, 10])
     """
+    if _half(wi, wo):
+        return _in_float32(helmholtz_anisotropic, (wi, wo), order)
     _check_group([("wi", wi), ("wo", wo)])
     order = check_order(order, max_order=MAX_ANISOTROPIC_ORDER)
     K = (order + 1) ** 2
     K = K * (K + 1) // 2
-    return _pair_basis(wi, wo, K, lambda a, b: _aniso_native(a, b, order), lambda a, b: _aniso_flat(a, b, order))
+    return _pair_basis(wi, wo, K, lambda a, b: _aniso_native(a, b, order, _PairProducts.apply),
+                       lambda a, b: _aniso_native(a, b, order, _OPS["pair_products"]),  # type: ignore[index]
+                       lambda a, b: _aniso_flat(a, b, order))
 
 
-def _aniso_native(a: torch.Tensor, b: torch.Tensor, order: int) -> torch.Tensor:
-    """The HSH of both sets (fast path; once where ``a is b``), then the fused pair products."""
+def _aniso_native(a: torch.Tensor, b: torch.Tensor, order: int, pairs) -> torch.Tensor:
+    """The HSH of both sets (fast path; once where ``a is b``), then the fused pair products ``pairs``."""
     Hi = hsh(a, order)
     Ho = Hi if a is b else hsh(b, order)
-    return _PairProducts.apply(Hi, Ho, order)
+    return pairs(Hi, Ho, order)
 
 
 def helmholtz_isotropic_world(
@@ -1319,6 +1560,8 @@ def helmholtz_isotropic_world(
         >>> torch_hsh.helmholtz_isotropic_world(l, n, n, 2).shape
         torch.Size([1, 10])
     """
+    if _half(wi, wo, normal):
+        return _in_float32(helmholtz_isotropic_world, (wi, wo, normal), order)
     _check_group([("wi", wi), ("wo", wo), ("normal", normal)])
     order = check_order(order)
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1]), ("normal", normal.shape[:-1])])
@@ -1326,6 +1569,8 @@ def helmholtz_isotropic_world(
     K = (order + 1) * (order + 2) * (order + 3) // 6
     if _native_ok(wi):
         out = _IsoCore.apply(*_iso_world_geom(wi, wo, nrm), order)
+    elif _graph_ok(wi):
+        out = _OPS["isotropic_core"](*_iso_world_geom(wi, wo, nrm), order)  # type: ignore[index]
     else:
         out = _run_rows(lambda a, b, c: _iso_world_flat(a, b, c, order), K, wi, wo, nrm)
     return _shaped(out, lead, K)

@@ -8,8 +8,13 @@ r"""``torch.nn.Module`` layers built on the Helmholtz HSH bases.
   (per-pixel BRDFs predicted by a network).
 
 Both modules are device/dtype agnostic (``.to(...)`` moves everything), save
-and load through ``state_dict``, and work with ``torch.jit.trace`` and
-``torch.compile``. ``torch.jit.script`` is **not** supported: the functional
+and load through ``state_dict``, and work with ``torch.jit.trace`` (and
+``torch.jit.save``), ``torch.compile`` (``fullgraph=True``), ``torch.export``
+(dynamic batch), forward-mode AD and ``DistributedDataParallel``. Under
+``torch.autocast``, and for half-precision (float16 / bfloat16) inputs, coefficients
+or modules (``module.half()``), :class:`HelmholtzBRDF` computes in float32 inside and
+returns the dtype that type promotion gives its inputs (float16 for a float16
+module and inputs), float32 under autocast. ``torch.jit.script`` is **not** supported: the functional
 bases they call validate their inputs in plain Python (``isinstance`` checks,
 ``functools.lru_cache`` constant tables, a global validation switch), which
 TorchScript cannot compile. Use ``torch.jit.trace`` (or ``torch.compile``)
@@ -31,7 +36,9 @@ from torch import nn
 from ._checks import MAX_ANISOTROPIC_ORDER, check_order, check_shape, check_tensor
 from .bases.helmholtz import albedo_terms
 from .kernel import (
+    HALF_DTYPES,
     anisotropic_indices,
+    autocast_enabled,
     helmholtz_anisotropic,
     helmholtz_isotropic,
     helmholtz_isotropic_world,
@@ -338,6 +345,48 @@ class HelmholtzBRDF(nn.Module):
         )
 
     # --------------------------------------------------------------- helpers
+    def _mixed(self, *dirs: torch.Tensor, coeffs: Optional[torch.Tensor] = None) -> Optional[Tuple[torch.dtype, torch.dtype]]:
+        """``(work, out)`` dtypes where a call runs in float32 inside: under ``torch.autocast``, or where the
+        directions, the coefficients used or the module are half precision (float16/bfloat16); else None.
+        ``out`` is the dtype that torch's type promotion gives the inputs and coefficients (float16 for float16
+        inputs and module), under autocast float32 at least (as autocast's float32 operations)."""
+        c = self.coefficients if coeffs is None else coeffs
+        half = getattr(c, "dtype", None) in HALF_DTYPES
+        for t in dirs:
+            half = half or getattr(t, "dtype", None) in HALF_DTYPES
+        if not isinstance(dirs[0], torch.Tensor):
+            return None  # the usual checks name the argument
+        dev = "cpu" if dirs[0].is_cpu else dirs[0].device.type  # (is_cpu: a fraction of device.type's cost)
+        if not (half or autocast_enabled(dev)):
+            return None
+        ts = [t for t in dirs if isinstance(t, torch.Tensor)]
+        if len(ts) != len(dirs) or not isinstance(c, torch.Tensor):
+            return None
+        ts.append(c)
+        amp = autocast_enabled(dev)
+        out = ts[0].dtype
+        for t in ts[1:]:
+            out = torch.promote_types(out, t.dtype)
+        if amp:
+            out = torch.promote_types(out, torch.float32)
+        return (torch.float64 if out == torch.float64 else torch.float32), out
+
+    def _own(self, coeffs: Optional[torch.Tensor]) -> torch.Tensor:
+        return self.coefficients if coeffs is None else coeffs
+
+    def _in_float32(self, mixed: Tuple[torch.dtype, torch.dtype], fn, named: Dict[str, torch.Tensor]) -> torch.Tensor:
+        """``fn(*named.values())`` in the work dtype of :meth:`_mixed` with autocast off, the result in its output
+        dtype (the directions' device is checked against the module's)."""
+        work, out = mixed
+        for name, t in named.items():
+            if name != "coeffs":
+                self._check_device(t, name)
+        xs = [t.to(work) for t in named.values()]
+        if named.get("wi") is not None and named.get("wi") is named.get("wo"):
+            xs[1] = xs[0]  # one direction set stays one tensor (computed once)
+        with torch.autocast(xs[0].device.type, enabled=False):
+            return fn(*xs).to(out)
+
     def _check_like(self, t: torch.Tensor, name: str) -> None:
         c = self.coefficients
         if t.dtype != c.dtype:
@@ -345,6 +394,11 @@ class HelmholtzBRDF(nn.Module):
                 f"`{name}` has dtype {t.dtype} but the module's coefficients are {c.dtype}; "
                 f"convert the input or call module.to({t.dtype})"
             )
+        if t.device != c.device:
+            self._check_device(t, name)
+
+    def _check_device(self, t: torch.Tensor, name: str) -> None:
+        c = self.coefficients
         if t.device != c.device:
             raise ValueError(
                 f"`{name}` is on {t.device} but the module's coefficients are on {c.device}; "
@@ -397,8 +451,14 @@ class HelmholtzBRDF(nn.Module):
             >>> m.basis(torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.6, 0.8])).shape
             torch.Size([10])
         """
+        mixed = self._mixed(wi, wo)
+        if mixed is not None:
+            return self._in_float32(mixed, self._basis, {"wi": wi, "wo": wo})
         self._check_like(wi, "wi")
         self._check_like(wo, "wo")
+        return self._basis(wi, wo)
+
+    def _basis(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         if self.isotropic:
             return helmholtz_isotropic(wi, wo, self.order)
         return helmholtz_anisotropic(wi, wo, self.order)
@@ -416,7 +476,13 @@ class HelmholtzBRDF(nn.Module):
         Returns:
             ``(..., C)`` BRDF values (0 where a direction is below the horizon).
         """
-        return self._combine(self.basis(wi, wo), coeffs)
+        mixed = self._mixed(wi, wo, coeffs=coeffs)
+        if mixed is not None:
+            return self._in_float32(mixed, lambda a, b, c: self._combine(self._basis(a, b), c),
+                                    {"wi": wi, "wo": wo, "coeffs": self._own(coeffs)})
+        self._check_like(wi, "wi")
+        self._check_like(wo, "wo")
+        return self._combine(self._basis(wi, wo), coeffs)
 
     def forward_world(
         self,
@@ -451,6 +517,10 @@ class HelmholtzBRDF(nn.Module):
                 "forward_world needs an isotropic HelmholtzBRDF (isotropic=True); an anisotropic BRDF "
                 "depends on the tangent: use torch_hsh.frames.to_local(v, normal, tangent) and forward()"
             )
+        mixed = self._mixed(wi, wo, normal, coeffs=coeffs)
+        if mixed is not None:
+            return self._in_float32(mixed, lambda a, b, n, c: self._combine(helmholtz_isotropic_world(a, b, n, self.order), c),
+                                    {"wi": wi, "wo": wo, "normal": normal, "coeffs": self._own(coeffs)})
         self._check_like(wi, "wi")
         self._check_like(wo, "wo")
         self._check_like(normal, "normal")
@@ -494,7 +564,13 @@ class HelmholtzBRDF(nn.Module):
             >>> m.albedo(torch.tensor([0.6, 0.0, 0.8])).detach()
             tensor([0.7000])
         """
+        mixed = self._mixed(wo, coeffs=coeffs)
+        if mixed is not None:
+            return self._in_float32(mixed, self._albedo, {"wo": wo, "coeffs": self._own(coeffs)})
         self._check_like(wo, "wo")
+        return self._albedo(wo, coeffs)
+
+    def _albedo(self, wo: torch.Tensor, coeffs: Optional[torch.Tensor]) -> torch.Tensor:
         c = self._resolve_coeffs(coeffs, wo)
         h_idx, c_idx, w = _albedo_terms(self.order, self.isotropic)
         # H_n(wo) for every n <= P can enter (the factor I_r needs r <= 1, not p)

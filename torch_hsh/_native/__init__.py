@@ -181,6 +181,19 @@ def library() -> Optional[ctypes.CDLL]:
     return _state["lib"]  # type: ignore[return-value]
 
 
+def _constant(fn):
+    """``fn`` called, not traced, by torch.compile (its result taken as a constant of the graph)."""
+    mark = getattr(getattr(torch, "compiler", None), "assume_constant_result", None)
+    return mark(fn) if mark is not None else fn
+
+
+@_constant
+def available() -> bool:
+    """Whether the kernel library is in use (built and loaded on the first call, see :func:`library`); the
+    call that torch.compile can take, where :func:`library` takes a lock."""
+    return library() is not None
+
+
 def _omp_symbol(lib: ctypes.CDLL) -> Optional[int]:
     """Address of ``omp_get_max_threads`` as ``lib`` and its dependencies resolve it (None: none)."""
     try:
