@@ -51,7 +51,7 @@ def materials(order: int, g: torch.Generator) -> torch.Tensor:
     B = torch_hsh.helmholtz_isotropic(wi.double(), wo.double(), order)
     out = []
     for kd, ks, shin in (([0.6, 0.35, 0.2], 0.3, 6.0), ([0.15, 0.3, 0.55], 0.6, 12.0)):
-        f = torch_hsh.brdf.BlinnPhong(kd=kd, ks=ks, shininess=shin)(wi, wo).double()
+        f = torch_hsh.brdf.BlinnPhong(albedo=kd, specular=ks, shininess=shin)(wi, wo).double()
         out.append(torch.linalg.lstsq(B, f).solution.T)
     return torch.stack(out).float()
 

@@ -208,7 +208,7 @@ def main(argv=None) -> dict:
     results["textured_als"] = {"fit": rel_rmse(fit, imgs2), "relit": rel_rmse(relit, truth2)}
     print(f"  alternating least squares: fit {rel_rmse(fit, imgs2):.4f}, relit held-out {rel_rmse(relit, truth2):.4f}")
 
-    grey = torch_hsh.HelmholtzBRDF(order=P, channels=1, dtype=DT, rho=1.0)
+    grey = torch_hsh.HelmholtzBRDF(order=P, channels=1, dtype=DT, albedo=1.0)
     log_alb = torch.zeros(n.shape[0], 3, dtype=DT, requires_grad=True)
     scale2 = float(imgs2.pow(2).mean())
 

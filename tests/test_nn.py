@@ -22,11 +22,15 @@ def _hemi(n, *lead, dtype=torch.float64, seed=0):
     return torch.cat([v[..., :2], v[..., 2:].abs()], dim=-1)
 
 
+def _basis(isotropic: bool) -> str:
+    return "helmholtz_isotropic" if isotropic else "helmholtz_anisotropic"
+
+
 def _random_model(order=3, isotropic=True, channels=2, dtype=torch.float64, seed=1, **kw):
     k = torch_hsh.num_isotropic(order) if isotropic else torch_hsh.num_anisotropic(order)
     g = torch.Generator().manual_seed(seed)
     init = torch.randn(channels, k, generator=g, dtype=dtype)
-    return HelmholtzBRDF(order, isotropic=isotropic, channels=channels, init=init, dtype=dtype, **kw)
+    return HelmholtzBRDF(order, basis=_basis(isotropic), channels=channels, init=init, dtype=dtype, **kw)
 
 
 # --------------------------------------------------------------------------- HSH
@@ -68,7 +72,7 @@ def test_forward_shapes_and_linearity(isotropic):
 
 def test_per_call_per_pixel_coefficients():
     m = HelmholtzBRDF(2, channels=3, dtype=torch.float64)
-    H, W, K = 4, 5, m.num_coefficients
+    H, W, K = 4, 5, m.num_functions
     g = torch.Generator().manual_seed(5)
     coeffs = torch.randn(H, W, 3, K, generator=g, dtype=torch.float64)
     wi = _hemi(W, H, seed=6)  # (H, W, 3)
@@ -96,7 +100,7 @@ def test_per_call_per_pixel_coefficients():
 @pytest.mark.parametrize("isotropic", [True, False])
 def test_lambertian_init_equals_rho_over_pi(isotropic):
     rho = [0.2, 0.5, 0.9]
-    m = HelmholtzBRDF(3, isotropic=isotropic, channels=3, rho=rho, dtype=torch.float64)
+    m = HelmholtzBRDF(3, basis=_basis(isotropic), channels=3, albedo=rho, dtype=torch.float64)
     wi, wo = _hemi(200, seed=7), _hemi(200, seed=8)
     out = m(wi, wo)
     expected = torch.tensor(rho, dtype=torch.float64) / math.pi
@@ -105,7 +109,7 @@ def test_lambertian_init_equals_rho_over_pi(isotropic):
     assert torch.count_nonzero(m.coefficients[:, 1:]) == 0
     torch.testing.assert_close(m.coefficients[:, 0], 2 * torch.tensor(rho, dtype=torch.float64))
     # default rho = 0.5, float32
-    m32 = HelmholtzBRDF(2, isotropic=isotropic)
+    m32 = HelmholtzBRDF(2, basis=_basis(isotropic))
     torch.testing.assert_close(m32(wi.float(), wo.float()), torch.full((200, 1), 0.5 / math.pi))
     # below the horizon: 0
     below = torch.tensor([[0.3, 0.0, -0.9]], dtype=torch.float64)
@@ -146,7 +150,7 @@ def test_forward_world_matches_local():
     torch.testing.assert_close(m(to_local(wi_w, n), to_local(wo_w, n)), m(wi_l, wo_l), rtol=1e-10, atol=1e-10)
     # per-pixel coefficients in world space, gradient to the normal
     nn_ = n.clone().requires_grad_(True)
-    c = torch.randn(50, 2, m.num_coefficients, generator=g, dtype=torch.float64)
+    c = torch.randn(50, 2, m.num_functions, generator=g, dtype=torch.float64)
     out = m.forward_world(wi_w, wo_w, nn_, c)
     assert out.shape == (50, 2)
     torch.testing.assert_close(out, m(wi_l, wo_l, c), rtol=1e-10, atol=1e-10)
@@ -155,7 +159,7 @@ def test_forward_world_matches_local():
 
 
 def test_forward_world_rejects_anisotropic():
-    m = HelmholtzBRDF(2, isotropic=False)
+    m = HelmholtzBRDF(2, basis="helmholtz_anisotropic")
     d = torch.tensor([[0.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="isotropic"):
         m.forward_world(d, d, d)
@@ -251,17 +255,17 @@ def test_hsh_module_state_dict_keeps_the_order():
 
 @pytest.mark.parametrize("isotropic", [True, False])
 def test_checkpoint_keeps_order_channels_isotropy(isotropic):
-    m = HelmholtzBRDF(2, isotropic=isotropic, channels=3, nonnegative=True, learnable=False, dtype=torch.float64)
+    m = HelmholtzBRDF(2, basis=_basis(isotropic), channels=3, nonnegative=True, learnable=False, dtype=torch.float64)
     with torch.no_grad():
         m.coefficients.copy_(torch.randn(m.coefficients.shape, generator=torch.Generator().manual_seed(3),
                                          dtype=torch.float64))
     sd = m.state_dict()
-    assert sd["_extra_state"]["order"] == 2 and sd["_extra_state"]["isotropic"] is isotropic
+    assert sd["_extra_state"]["order"] == 2 and sd["_extra_state"]["basis"] == _basis(isotropic)
     buf = io.BytesIO()
     torch.save(sd, buf)
     buf.seek(0)
     m2 = HelmholtzBRDF.from_state_dict(torch.load(buf))  # no order/channels/isotropic repeated
-    assert (m2.order, m2.isotropic, m2.channels, m2.nonnegative, m2.learnable) == (2, isotropic, 3, True, False)
+    assert (m2.order, m2.basis_name, m2.channels, m2.nonnegative, m2.learnable) == (2, _basis(isotropic), 3, True, False)
     assert m2.coefficients.dtype == torch.float64 and torch.equal(m2.coefficients, m.coefficients)
     # inside a bigger model: the prefix selects it
     net = torch.nn.Sequential(torch.nn.Linear(2, 2), m)
@@ -269,6 +273,12 @@ def test_checkpoint_keeps_order_channels_isotropy(isotropic):
     assert torch.equal(m3.coefficients, m.coefficients)
     with pytest.raises(KeyError, match="_extra_state"):
         HelmholtzBRDF.from_state_dict({"coefficients": m.coefficients})
+    # a 0.1 checkpoint kept `isotropic: bool`: it loads as the same basis
+    old = dict(sd, _extra_state={k: v for k, v in sd["_extra_state"].items() if k != "basis"})
+    old["_extra_state"].update(version=1, isotropic=isotropic)
+    m4 = HelmholtzBRDF.from_state_dict(old)
+    assert m4.basis_name == _basis(isotropic) and torch.equal(m4.coefficients, m.coefficients)
+    m.load_state_dict(old)
 
 
 def test_to_float64_and_dtype_mismatch():
@@ -318,7 +328,7 @@ def _compile_or_skip(mod, **kw):
 def test_torch_compile_equivalence():
     m = _random_model(order=3, channels=2, dtype=torch.float32)
     wi, wo = _hemi(64, dtype=torch.float32, seed=26), _hemi(64, dtype=torch.float32, seed=27)
-    c = torch.randn(64, 2, m.num_coefficients)
+    c = torch.randn(64, 2, m.num_functions)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         cm = _compile_or_skip(m, backend="eager", fullgraph=True)
@@ -342,21 +352,21 @@ def test_torch_compile_aot_eager():
 
 
 # -------------------------------------------------------------------- bad input
-def test_bad_coeffs():
+def test_bad_coefficients():
     m = HelmholtzBRDF(2, channels=3)
     d = _hemi(4, dtype=torch.float32)
-    K = m.num_coefficients
-    with pytest.raises(ValueError, match=r"coeffs.*\(\.\.\., 3, 10\)"):
+    K = m.num_functions
+    with pytest.raises(ValueError, match=r"coefficients.*\(\.\.\., 3, 10\)"):
         m(d, d, torch.zeros(4, 2, K))  # wrong channels
-    with pytest.raises(ValueError, match="coeffs"):
+    with pytest.raises(ValueError, match="coefficients"):
         m(d, d, torch.zeros(4, 3, K + 1))  # wrong K
-    with pytest.raises(ValueError, match="coeffs"):
+    with pytest.raises(ValueError, match="coefficients"):
         m(d, d, torch.zeros(K))  # missing channel axis
     with pytest.raises(ValueError, match="broadcast"):
         m(d, d, torch.zeros(5, 3, K))  # leading shape does not broadcast
-    with pytest.raises(TypeError, match="coeffs"):
+    with pytest.raises(TypeError, match="coefficients"):
         m(d, d, torch.zeros(4, 3, K, dtype=torch.float64))
-    with pytest.raises(TypeError, match="coeffs"):
+    with pytest.raises(TypeError, match="coefficients"):
         m(d, d, np.zeros((3, K), dtype=np.float32))
     with pytest.raises(ValueError, match="NaN"):
         m(d, d, torch.full((3, K), float("nan")))
@@ -383,25 +393,27 @@ def test_bad_constructor_args():
         HelmholtzBRDF(2, init=3)
     with pytest.raises(ValueError, match="channels"):
         HelmholtzBRDF(2, channels=0)
-    with pytest.raises(ValueError, match="rho"):
-        HelmholtzBRDF(2, channels=3, rho=[0.1, 0.2])
+    with pytest.raises(ValueError, match="albedo"):
+        HelmholtzBRDF(2, channels=3, albedo=[0.1, 0.2])
     with pytest.raises(ValueError, match="order"):
-        HelmholtzBRDF(17, isotropic=False)
+        HelmholtzBRDF(17, basis="helmholtz_anisotropic")
     with pytest.raises(ValueError, match="order"):
         HelmholtzBRDF(-1)
     with pytest.raises(TypeError, match="dtype"):
         HelmholtzBRDF(2, dtype=torch.float16)
-    with pytest.raises(TypeError, match="isotropic"):
-        HelmholtzBRDF(2, isotropic="yes")
+    with pytest.raises(ValueError, match="`basis` must be one of"):
+        HelmholtzBRDF(2, basis="isotropic")
+    with pytest.raises(TypeError, match="isotropic"):  # the 0.1 keyword is gone
+        HelmholtzBRDF(2, isotropic=True)
 
 
 def test_repr_and_properties():
     m = HelmholtzBRDF(3, channels=3)
     r = repr(m)
     assert "order=3" in r and "channels=3" in r and "num_functions=20" in r and "isotropic" in r
-    assert m.num_functions == m.num_coefficients == 20
+    assert m.num_functions == 20
     assert torch.equal(m.indices, torch_hsh.isotropic_indices(3))
-    a = HelmholtzBRDF(2, isotropic=False)
+    a = HelmholtzBRDF(2, basis="helmholtz_anisotropic")
     assert a.num_functions == 45 and "anisotropic" in repr(a)
     assert torch.equal(a.indices, torch_hsh.anisotropic_indices(2))
 
@@ -435,12 +447,12 @@ def test_albedo_matches_quadrature(isotropic, order):
 
 
 def test_albedo_lambertian_per_call_and_horizon():
-    m = HelmholtzBRDF(3, channels=2, rho=[0.3, 0.8], dtype=torch.float64)
+    m = HelmholtzBRDF(3, channels=2, albedo=[0.3, 0.8], dtype=torch.float64)
     wo = _hemi(10, seed=32)
     torch.testing.assert_close(m.albedo(wo), torch.tensor([0.3, 0.8], dtype=torch.float64).expand(10, 2))
     # per-call per-sample coefficients
     g = torch.Generator().manual_seed(33)
-    c = torch.randn(10, 2, m.num_coefficients, generator=g, dtype=torch.float64)
+    c = torch.randn(10, 2, m.num_functions, generator=g, dtype=torch.float64)
     out = m.albedo(wo, c)
     assert out.shape == (10, 2)
     for i in range(10):

@@ -206,7 +206,7 @@ def test_jit_trace_save_load(backend):
         def __init__(self):
             super().__init__()
             self.iso = torch_hsh.HelmholtzBRDF(3, channels=3, init=torch.randn(3, 20))
-            self.aniso = torch_hsh.HelmholtzBRDF(1, isotropic=False, channels=3, init=torch.randn(3, 10))
+            self.aniso = torch_hsh.HelmholtzBRDF(1, basis="helmholtz_anisotropic", channels=3, init=torch.randn(3, 10))
             self.hsh = torch_hsh.HSH(2)
 
         def forward(self, wi, wo):

@@ -115,7 +115,7 @@ def test_screenshots_match_the_library_render(tmp_path):
 
 def test_view_cli_and_size_limit(tmp_path, capsys):
     res = _result(24)
-    res.save(tmp_path / "result.npz")
+    res.write(tmp_path / "result.npz")
     out = tmp_path / "r.html"
     assert cli.main(["view", str(tmp_path), "--out", str(out), "--quiet"]) == 0
     text = out.read_text()

@@ -124,6 +124,18 @@ def _albedo_terms(order: int, isotropic: bool) -> Tuple[Tuple[int, ...], Tuple[i
     return tuple(h_idx), tuple(c_idx), tuple(w)
 
 
+#: The bases a :class:`HelmholtzBRDF` can be built on.
+_BASES = ("helmholtz_isotropic", "helmholtz_anisotropic")
+
+
+def _current_config(state: Dict[str, Any]) -> Dict[str, Any]:
+    """A checkpoint's configuration in the current form (version 1 kept ``isotropic: bool`` for ``basis``)."""
+    state = dict(state)
+    if "basis" not in state and "isotropic" in state:
+        state["basis"] = _BASES[0] if state.pop("isotropic") else _BASES[1]
+    return state
+
+
 _InitType = Union[str, torch.Tensor]
 
 
@@ -141,20 +153,20 @@ class HelmholtzBRDF(nn.Module):
     Args:
         order: maximum order ``P`` of the basis (isotropic: at most 40,
             anisotropic: at most 16).
-        isotropic: ``True`` (default) for the isotropic basis
+        basis: ``"helmholtz_isotropic"`` (default) for the isotropic basis
             (:func:`torch_hsh.helmholtz_isotropic`,
             ``K = (P+1)(P+2)(P+3)/6`` columns in the order of
-            :func:`torch_hsh.isotropic_indices`); ``False`` for the general
-            basis (:func:`torch_hsh.helmholtz_anisotropic`,
+            :func:`torch_hsh.isotropic_indices`); ``"helmholtz_anisotropic"`` for the
+            general basis (:func:`torch_hsh.helmholtz_anisotropic`,
             ``K = Q(Q+1)/2``, ``Q = (P+1)**2``, order of
             :func:`torch_hsh.anisotropic_indices`).
         channels: number of output channels ``C`` (e.g. 3 for RGB).
-        init: ``"lambertian"`` (default): only :math:`a_{00}^0 = 2\rho` is
+        init: ``"lambertian"`` (default): only :math:`a_{00}^0 = 2\rho` (``albedo``) is
             non-zero, so the module starts as the Lambertian BRDF
             :math:`\rho/\pi` (because :math:`\mathcal H_{00}^0 = 1/(2\pi)`);
             ``"zeros"``; or a tensor of shape ``(C, K)`` or ``(K,)`` (copied,
             repeated over channels) with the initial coefficients.
-        rho: Lambertian albedo used by ``init="lambertian"``: a float or a
+        albedo: Lambertian albedo used by ``init="lambertian"``: a float or a
             sequence of ``C`` floats. Default 0.5.
         learnable: if ``True`` (default) the coefficients are an
             ``nn.Parameter``; otherwise a buffer (still saved in the
@@ -171,10 +183,11 @@ class HelmholtzBRDF(nn.Module):
 
     Attributes:
         coefficients: ``(C, K)`` tensor (parameter or buffer).
+        basis_name: the ``basis`` argument (:meth:`basis` evaluates the basis functions).
 
     Shapes:
-        ``forward(wi, wo, coeffs=None)``: ``wi``, ``wo`` ``(..., 3)``
-        (broadcast together) -> ``(..., C)``. ``coeffs`` optionally replaces
+        ``forward(wi, wo, coefficients=None)``: ``wi``, ``wo`` ``(..., 3)``
+        (broadcast together) -> ``(..., C)``. ``coefficients`` optionally replaces
         the module's coefficients for this call: ``(C, K)``, or
         ``(..., C, K)`` whose leading dimensions broadcast with those of the
         directions (e.g. one BRDF per pixel predicted by a network).
@@ -191,18 +204,19 @@ class HelmholtzBRDF(nn.Module):
     def __init__(
         self,
         order: int,
-        isotropic: bool = True,
+        basis: str = "helmholtz_isotropic",
         channels: int = 1,
         init: _InitType = "lambertian",
-        rho: Union[float, Sequence[float]] = 0.5,
+        albedo: Union[float, Sequence[float]] = 0.5,
         learnable: bool = True,
         nonnegative: bool = False,
         dtype: Optional[torch.dtype] = None,
         device: Optional[Union[str, torch.device]] = None,
     ) -> None:
         super().__init__()
-        if not isinstance(isotropic, bool):
-            raise TypeError(f"`isotropic` must be a bool, got {type(isotropic).__name__}")
+        if basis not in _BASES:
+            raise ValueError(f"`basis` must be one of {', '.join(map(repr, _BASES))}, got {basis!r}")
+        isotropic = basis == "helmholtz_isotropic"
         if not isinstance(learnable, bool):
             raise TypeError(f"`learnable` must be a bool, got {type(learnable).__name__}")
         if not isinstance(nonnegative, bool):
@@ -220,20 +234,21 @@ class HelmholtzBRDF(nn.Module):
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"`dtype` must be torch.float32 or torch.float64, got {dtype}")
         self.order = order
-        self.isotropic = isotropic
+        self.basis_name = basis
+        self._isotropic = isotropic
         self.channels = channels
         self.nonnegative = nonnegative
         self.learnable = learnable
 
-        coeffs = self._initial_coefficients(init, rho, channels, k, dtype, device)
+        initial = self._initial_coefficients(init, albedo, channels, k, dtype, device)
         if learnable:
-            self.coefficients = nn.Parameter(coeffs)
+            self.coefficients = nn.Parameter(initial)
         else:
-            self.register_buffer("coefficients", coeffs)
+            self.register_buffer("coefficients", initial)
 
     # ------------------------------------------------------------------ init
     @staticmethod
-    def _initial_coefficients(init, rho, channels, k, dtype, device) -> torch.Tensor:
+    def _initial_coefficients(init, albedo, channels, k, dtype, device) -> torch.Tensor:
         if isinstance(init, torch.Tensor):
             check_tensor(init, "init")
             # C channels, K basis functions
@@ -248,18 +263,18 @@ class HelmholtzBRDF(nn.Module):
             return out
         if init != "lambertian":
             raise ValueError(f"`init` must be 'lambertian', 'zeros' or a tensor, got {init!r}")
-        if isinstance(rho, (int, float)) and not isinstance(rho, bool):
-            rho_t = torch.full((channels,), float(rho), dtype=dtype, device=device)
+        if isinstance(albedo, (int, float)) and not isinstance(albedo, bool):
+            albedo_t = torch.full((channels,), float(albedo), dtype=dtype, device=device)
         else:
             try:
-                rho_t = torch.as_tensor(rho, dtype=dtype, device=device).reshape(-1)
+                albedo_t = torch.as_tensor(albedo, dtype=dtype, device=device).reshape(-1)
             except (TypeError, ValueError, RuntimeError):
-                raise TypeError(f"`rho` must be a float or a sequence of {channels} floats, got {rho!r}") from None
-            if rho_t.numel() != channels:
-                raise ValueError(f"`rho` must be a float or a sequence of {channels} floats, got {rho_t.numel()} values")
+                raise TypeError(f"`albedo` must be a float or a sequence of {channels} floats, got {albedo!r}") from None
+            if albedo_t.numel() != channels:
+                raise ValueError(f"`albedo` must be a float or a sequence of {channels} floats, got {albedo_t.numel()} values")
         # Column 0 is (p, r, q) = (0, 0, 0) in the isotropic basis and the pair
         # (H_0^0, H_0^0) in the anisotropic one; both equal 1 / (2 pi).
-        out[:, 0] = 2.0 * rho_t
+        out[:, 0] = 2.0 * albedo_t
         return out
 
     # ------------------------------------------------------------ properties
@@ -268,16 +283,11 @@ class HelmholtzBRDF(nn.Module):
         """Number of basis functions ``K`` per channel."""
         return int(self.coefficients.shape[-1])
 
-    @property
-    def num_coefficients(self) -> int:
-        """Alias of :attr:`num_functions` (the earlier name)."""
-        return self.num_functions
-
     # ------------------------------------------------------------ checkpoints
     def get_extra_state(self) -> Dict[str, Any]:
         """The configuration kept in the ``state_dict`` (key ``_extra_state``):
-        ``order``, ``isotropic``, ``channels``, ``learnable``, ``nonnegative``."""
-        return {"version": 1, "order": self.order, "isotropic": self.isotropic, "channels": self.channels,
+        ``order``, ``basis``, ``channels``, ``learnable``, ``nonnegative``."""
+        return {"version": 2, "order": self.order, "basis": self.basis_name, "channels": self.channels,
                 "learnable": self.learnable, "nonnegative": self.nonnegative}
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
@@ -285,7 +295,8 @@ class HelmholtzBRDF(nn.Module):
         if not isinstance(state, dict) or "order" not in state:
             raise ValueError(f"HelmholtzBRDF checkpoint extra state is not recognised: {state!r}")
         mine = self.get_extra_state()
-        diff = [f"{k}={state[k]!r} (module has {mine[k]!r})" for k in ("order", "isotropic", "channels")
+        state = _current_config(state)
+        diff = [f"{k}={state[k]!r} (module has {mine[k]!r})" for k in ("order", "basis", "channels")
                 if k in state and state[k] != mine[k]]
         if diff:
             raise ValueError(
@@ -319,11 +330,10 @@ class HelmholtzBRDF(nn.Module):
         key = prefix + "_extra_state"
         if key not in state_dict:
             raise KeyError(f"no {key!r} in the state_dict: it was saved before HelmholtzBRDF kept its "
-                           "configuration; construct the module with its order/isotropic/channels and load it")
-        cfg = dict(state_dict[key])
-        coeffs = state_dict[prefix + "coefficients"]
-        kwargs.setdefault("dtype", coeffs.dtype)
-        m = cls(order=cfg["order"], isotropic=cfg["isotropic"], channels=cfg["channels"], init="zeros",
+                           "configuration; construct the module with its order/basis/channels and load it")
+        cfg = _current_config(dict(state_dict[key]))
+        kwargs.setdefault("dtype", state_dict[prefix + "coefficients"].dtype)
+        m = cls(order=cfg["order"], basis=cfg["basis"], channels=cfg["channels"], init="zeros",
                 learnable=cfg.get("learnable", True), nonnegative=cfg.get("nonnegative", False), **kwargs)
         m.load_state_dict({k[len(prefix):]: v for k, v in state_dict.items() if k.startswith(prefix)
                            and "." not in k[len(prefix):]})
@@ -334,23 +344,22 @@ class HelmholtzBRDF(nn.Module):
         """Index table of the basis columns: ``(K, 3)`` rows ``(p, r, q)`` if isotropic,
         else ``(K, 4)`` rows ``(p, q, r, s)`` (see :func:`torch_hsh.isotropic_indices` /
         :func:`torch_hsh.anisotropic_indices`)."""
-        return isotropic_indices(self.order) if self.isotropic else anisotropic_indices(self.order)
+        return isotropic_indices(self.order) if self._isotropic else anisotropic_indices(self.order)
 
     def extra_repr(self) -> str:
-        kind = "isotropic" if self.isotropic else "anisotropic"
         return (
-            f"order={self.order}, {kind}, channels={self.channels}, "
+            f"order={self.order}, basis={self.basis_name!r}, channels={self.channels}, "
             f"num_functions={self.num_functions}, learnable={self.learnable}, "
             f"nonnegative={self.nonnegative}"
         )
 
     # --------------------------------------------------------------- helpers
-    def _mixed(self, *dirs: torch.Tensor, coeffs: Optional[torch.Tensor] = None) -> Optional[Tuple[torch.dtype, torch.dtype]]:
+    def _mixed(self, *dirs: torch.Tensor, coefficients: Optional[torch.Tensor] = None) -> Optional[Tuple[torch.dtype, torch.dtype]]:
         """``(work, out)`` dtypes where a call runs in float32 inside: under ``torch.autocast``, or where the
         directions, the coefficients used or the module are half precision (float16/bfloat16); else None.
         ``out`` is the dtype that torch's type promotion gives the inputs and coefficients (float16 for float16
         inputs and module), under autocast float32 at least (as autocast's float32 operations)."""
-        c = self.coefficients if coeffs is None else coeffs
+        c = self.coefficients if coefficients is None else coefficients
         half = getattr(c, "dtype", None) in HALF_DTYPES
         for t in dirs:
             half = half or getattr(t, "dtype", None) in HALF_DTYPES
@@ -371,15 +380,15 @@ class HelmholtzBRDF(nn.Module):
             out = torch.promote_types(out, torch.float32)
         return (torch.float64 if out == torch.float64 else torch.float32), out
 
-    def _own(self, coeffs: Optional[torch.Tensor]) -> torch.Tensor:
-        return self.coefficients if coeffs is None else coeffs
+    def _own(self, coefficients: Optional[torch.Tensor]) -> torch.Tensor:
+        return self.coefficients if coefficients is None else coefficients
 
     def _in_float32(self, mixed: Tuple[torch.dtype, torch.dtype], fn, named: Dict[str, torch.Tensor]) -> torch.Tensor:
         """``fn(*named.values())`` in the work dtype of :meth:`_mixed` with autocast off, the result in its output
         dtype (the directions' device is checked against the module's)."""
         work, out = mixed
         for name, t in named.items():
-            if name != "coeffs":
+            if name != "coefficients":
                 self._check_device(t, name)
         xs = [t.to(work) for t in named.values()]
         if named.get("wi") is not None and named.get("wi") is named.get("wo"):
@@ -405,20 +414,20 @@ class HelmholtzBRDF(nn.Module):
                 f"move the input or call module.to({str(t.device)!r})"
             )
 
-    def _resolve_coeffs(self, coeffs: Optional[torch.Tensor], ref: torch.Tensor) -> torch.Tensor:
-        if coeffs is None:
+    def _resolve_coeffs(self, coefficients: Optional[torch.Tensor], ref: torch.Tensor) -> torch.Tensor:
+        if coefficients is None:
             return self.coefficients
-        check_tensor(coeffs, "coeffs", min_dims=2)
-        check_shape(coeffs, "coeffs", ("*", self.channels, self.num_functions))  # (..., channels, basis functions)
-        if coeffs.dtype != ref.dtype:
-            raise TypeError(f"`coeffs` has dtype {coeffs.dtype} but the directions are {ref.dtype}")
-        if coeffs.device != ref.device:
-            raise ValueError(f"`coeffs` is on {coeffs.device} but the directions are on {ref.device}")
-        return coeffs
+        check_tensor(coefficients, "coefficients", min_dims=2)
+        check_shape(coefficients, "coefficients", ("*", self.channels, self.num_functions))  # (..., channels, basis functions)
+        if coefficients.dtype != ref.dtype:
+            raise TypeError(f"`coefficients` has dtype {coefficients.dtype} but the directions are {ref.dtype}")
+        if coefficients.device != ref.device:
+            raise ValueError(f"`coefficients` is on {coefficients.device} but the directions are on {ref.device}")
+        return coefficients
 
-    def _combine(self, basis: torch.Tensor, coeffs: Optional[torch.Tensor]) -> torch.Tensor:
+    def _combine(self, basis: torch.Tensor, coefficients: Optional[torch.Tensor]) -> torch.Tensor:
         """``(..., K)`` basis values and coefficients -> ``(..., C)``."""
-        c = self._resolve_coeffs(coeffs, basis)
+        c = self._resolve_coeffs(coefficients, basis)
         if c.dim() == 2:
             out = torch.nn.functional.linear(basis, c)
         else:
@@ -428,7 +437,7 @@ class HelmholtzBRDF(nn.Module):
                 torch.broadcast_shapes(batch, cb)
             except RuntimeError:
                 raise ValueError(
-                    f"leading shape of `coeffs` {tuple(cb)} does not broadcast with the directions' "
+                    f"leading shape of `coefficients` {tuple(cb)} does not broadcast with the directions' "
                     f"leading shape {tuple(batch)}"
                 ) from None
             out = torch.matmul(c, basis.unsqueeze(-1)).squeeze(-1)
@@ -459,37 +468,37 @@ class HelmholtzBRDF(nn.Module):
         return self._basis(wi, wo)
 
     def _basis(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
-        if self.isotropic:
+        if self._isotropic:
             return helmholtz_isotropic(wi, wo, self.order)
         return helmholtz_anisotropic(wi, wo, self.order)
 
-    def forward(self, wi: torch.Tensor, wo: torch.Tensor, coeffs: Optional[torch.Tensor] = None) -> torch.Tensor:
+    def forward(self, wi: torch.Tensor, wo: torch.Tensor, coefficients: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Evaluate the BRDF at local-frame direction pairs.
 
         Args:
             wi: ``(..., 3)`` incident directions, local frame (z = normal).
             wo: ``(..., 3)`` outgoing directions; broadcast with ``wi``.
-            coeffs: optional per-call coefficients ``(C, K)`` or ``(..., C, K)``
+            coefficients: optional per-call coefficients ``(C, K)`` or ``(..., C, K)``
                 (leading dims broadcast with the directions'); default: the
                 module's own.
 
         Returns:
             ``(..., C)`` BRDF values (0 where a direction is below the horizon).
         """
-        mixed = self._mixed(wi, wo, coeffs=coeffs)
+        mixed = self._mixed(wi, wo, coefficients=coefficients)
         if mixed is not None:
             return self._in_float32(mixed, lambda a, b, c: self._combine(self._basis(a, b), c),
-                                    {"wi": wi, "wo": wo, "coeffs": self._own(coeffs)})
+                                    {"wi": wi, "wo": wo, "coefficients": self._own(coefficients)})
         self._check_like(wi, "wi")
         self._check_like(wo, "wo")
-        return self._combine(self._basis(wi, wo), coeffs)
+        return self._combine(self._basis(wi, wo), coefficients)
 
     def forward_world(
         self,
         wi: torch.Tensor,
         wo: torch.Tensor,
         normal: torch.Tensor,
-        coeffs: Optional[torch.Tensor] = None,
+        coefficients: Optional[torch.Tensor] = None,
     ) -> torch.Tensor:
         """Evaluate an isotropic BRDF from world-space directions and normals.
 
@@ -501,7 +510,7 @@ class HelmholtzBRDF(nn.Module):
             wi: ``(..., 3)`` light directions (toward the light), world frame.
             wo: ``(..., 3)`` view directions (toward the camera), world frame.
             normal: ``(..., 3)`` surface normals; all three broadcast together.
-            coeffs: optional per-call coefficients as in :meth:`forward`.
+            coefficients: optional per-call coefficients as in :meth:`forward`.
 
         Returns:
             ``(..., C)``; equals ``forward(to_local(wi, n), to_local(wo, n))``.
@@ -512,21 +521,21 @@ class HelmholtzBRDF(nn.Module):
                 :func:`torch_hsh.frames.to_local` and a tangent, then call
                 :meth:`forward`).
         """
-        if not self.isotropic:
+        if not self._isotropic:
             raise ValueError(
-                "forward_world needs an isotropic HelmholtzBRDF (isotropic=True); an anisotropic BRDF "
+                "forward_world needs an isotropic HelmholtzBRDF (basis=\"helmholtz_isotropic\"); an anisotropic BRDF "
                 "depends on the tangent: use torch_hsh.frames.to_local(v, normal, tangent) and forward()"
             )
-        mixed = self._mixed(wi, wo, normal, coeffs=coeffs)
+        mixed = self._mixed(wi, wo, normal, coefficients=coefficients)
         if mixed is not None:
             return self._in_float32(mixed, lambda a, b, n, c: self._combine(helmholtz_isotropic_world(a, b, n, self.order), c),
-                                    {"wi": wi, "wo": wo, "normal": normal, "coeffs": self._own(coeffs)})
+                                    {"wi": wi, "wo": wo, "normal": normal, "coefficients": self._own(coefficients)})
         self._check_like(wi, "wi")
         self._check_like(wo, "wo")
         self._check_like(normal, "normal")
-        return self._combine(helmholtz_isotropic_world(wi, wo, normal, self.order), coeffs)
+        return self._combine(helmholtz_isotropic_world(wi, wo, normal, self.order), coefficients)
 
-    def albedo(self, wo: torch.Tensor, coeffs: Optional[torch.Tensor] = None) -> torch.Tensor:
+    def albedo(self, wo: torch.Tensor, coefficients: Optional[torch.Tensor] = None) -> torch.Tensor:
         r"""Directional albedo :math:`\rho(\omega_o) = \int_{\Omega} f(\omega_i, \omega_o)\cos\theta_i\, d\omega_i`
         in closed form.
 
@@ -553,26 +562,26 @@ class HelmholtzBRDF(nn.Module):
 
         Args:
             wo: ``(..., 3)`` outgoing directions, local frame.
-            coeffs: optional per-call coefficients as in :meth:`forward`.
+            coefficients: optional per-call coefficients as in :meth:`forward`.
 
         Returns:
             ``(..., C)`` albedo (0 for ``wo`` below the horizon).
 
         Example:
             >>> import torch, torch_hsh
-            >>> m = torch_hsh.HelmholtzBRDF(3, rho=0.7)
+            >>> m = torch_hsh.HelmholtzBRDF(3, albedo=0.7)
             >>> m.albedo(torch.tensor([0.6, 0.0, 0.8])).detach()
             tensor([0.7000])
         """
-        mixed = self._mixed(wo, coeffs=coeffs)
+        mixed = self._mixed(wo, coefficients=coefficients)
         if mixed is not None:
-            return self._in_float32(mixed, self._albedo, {"wo": wo, "coeffs": self._own(coeffs)})
+            return self._in_float32(mixed, self._albedo, {"wo": wo, "coefficients": self._own(coefficients)})
         self._check_like(wo, "wo")
-        return self._albedo(wo, coeffs)
+        return self._albedo(wo, coefficients)
 
-    def _albedo(self, wo: torch.Tensor, coeffs: Optional[torch.Tensor]) -> torch.Tensor:
-        c = self._resolve_coeffs(coeffs, wo)
-        h_idx, c_idx, w = _albedo_terms(self.order, self.isotropic)
+    def _albedo(self, wo: torch.Tensor, coefficients: Optional[torch.Tensor]) -> torch.Tensor:
+        c = self._resolve_coeffs(coefficients, wo)
+        h_idx, c_idx, w = _albedo_terms(self.order, self._isotropic)
         # H_n(wo) for every n <= P can enter (the factor I_r needs r <= 1, not p)
         n_hsh = 1 + max(h_idx)
         h_order = int(math.isqrt(n_hsh - 1))

@@ -31,7 +31,7 @@ milliseconds after the navigation start (``performance.now()``) on ``document.bo
 
 Example:
     >>> from torch_hsh.rti.viewer import write_viewer  # doctest: +SKIP
-    >>> write_viewer("result.html", HSHResult.load("results/capture/result.npz"))  # doctest: +SKIP
+    >>> write_viewer("result.html", HSHResult.read("results/capture/result.npz"))  # doctest: +SKIP
 """
 from __future__ import annotations
 
@@ -179,7 +179,7 @@ def write_viewer(path, result, exposure: Optional[float] = None, title: str = "t
         The exposure used (the page shows ``sRGB(min(1, exposure * relight(l)))``).
 
     Example:
-        >>> write_viewer("cat.html", HSHResult.load("results/cat/result.npz"))  # doctest: +SKIP
+        >>> write_viewer("cat.html", HSHResult.read("results/cat/result.npz"))  # doctest: +SKIP
         1.73
     """
     p = Path(path)
