@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import math
 import operator
-from typing import Optional, Tuple, Union
+from typing import Tuple, Union
 
 import torch
 import torch.nn.functional as F
 
-from .._checks import check_count, check_dirs, check_shape, check_tensor
+from .._checks import check_count, check_tensor
 from .visibility import _positive, cast_shadow_mask
 
 __all__ = [
