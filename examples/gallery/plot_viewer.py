@@ -76,7 +76,11 @@ if pages:
         ax.set_axis_off()
 else:
     # docs/images/rti_viewer.png: three relit views and the normals of a real capture
-    committed = Path(__file__).resolve().parents[2] / "docs" / "images" / "rti_viewer.png"
+    # sphinx-gallery runs the script without __file__: look upward from the working folder too
+    here = Path(globals().get("__file__", Path.cwd() / "plot_viewer.py")).resolve()
+    committed = next((d / "docs" / "images" / "rti_viewer.png" for d in [*here.parents, *Path.cwd().resolve().parents,
+                      Path.cwd().resolve()] if (d / "docs" / "images" / "rti_viewer.png").exists()),
+                     here.parents[2] / "docs" / "images" / "rti_viewer.png")
     picture = committed if committed.exists() else work / "small" / "relighting.png"
     fig = plt.figure(figsize=(9, 3), layout="constrained")
     plt.imshow(mpimg.imread(picture))
