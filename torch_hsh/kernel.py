@@ -1386,7 +1386,7 @@ def hsh(dirs: torch.Tensor, order: int) -> torch.Tensor:
     if _native_ok(flat):
         out = _HshNative.apply(flat, order)  # checks the values that the kernel flags
     elif _graph_ok(flat):
-        out = _OPS["hsh"](flat, order)  # type: ignore[index]
+        out = _OPS["hsh"](flat, order)
     elif _hsh_fast_ok(flat):
         out = _hsh_sphericart(flat, order)
     else:
@@ -1429,7 +1429,7 @@ def helmholtz_isotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch
     # fused C kernels (geometry, then the basis), else the torch kernel in row chunks
     return _pair_basis(wi, wo, K,
                        lambda a, b: _IsoDirs.apply(a, b, order) if _needs_grad(a, b) else _iso_dirs_native(a, b, order),
-                       lambda a, b: _OPS["isotropic"](a, b, order),  # type: ignore[index]
+                       lambda a, b: _OPS["isotropic"](a, b, order),
                        lambda a, b: _iso_dirs(a, b, order))
 
 
@@ -1485,7 +1485,7 @@ def helmholtz_isotropic_cosines(
     if _native_ok(zi):
         out = _IsoCore.apply(*_iso_cosines_geom(zi, zo, cd), order)
     elif _graph_ok(zi):
-        out = _OPS["isotropic_core"](*_iso_cosines_geom(zi, zo, cd), order)  # type: ignore[index]
+        out = _OPS["isotropic_core"](*_iso_cosines_geom(zi, zo, cd), order)
     else:
         out = _run_rows(lambda a, b, c: _iso_cosines_flat(a, b, c, order), K, zi, zo, cd)
     return _shaped(out, lead, K)
@@ -1521,7 +1521,7 @@ def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> tor
     K = (order + 1) ** 2
     K = K * (K + 1) // 2
     return _pair_basis(wi, wo, K, lambda a, b: _aniso_native(a, b, order, _PairProducts.apply),
-                       lambda a, b: _aniso_native(a, b, order, _OPS["pair_products"]),  # type: ignore[index]
+                       lambda a, b: _aniso_native(a, b, order, _OPS["pair_products"]),
                        lambda a, b: _aniso_flat(a, b, order))
 
 
@@ -1570,7 +1570,7 @@ def helmholtz_isotropic_world(
     if _native_ok(wi):
         out = _IsoCore.apply(*_iso_world_geom(wi, wo, nrm), order)
     elif _graph_ok(wi):
-        out = _OPS["isotropic_core"](*_iso_world_geom(wi, wo, nrm), order)  # type: ignore[index]
+        out = _OPS["isotropic_core"](*_iso_world_geom(wi, wo, nrm), order)
     else:
         out = _run_rows(lambda a, b, c: _iso_world_flat(a, b, c, order), K, wi, wo, nrm)
     return _shaped(out, lead, K)
