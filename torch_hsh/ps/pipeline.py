@@ -23,7 +23,14 @@ Two models (see ``docs/photometric_stereo.md``):
 :func:`solve_hsh` is a pipeline of six stages, each in its own module, with
 small state objects between them (data flows one way):
 
-=====  ====================================  ==================  ==============================
+1. :mod:`~torch_hsh.ps.observations` -> ``Observations``: flatten, normalise, noise / saturation / shadow weights
+2. :mod:`~torch_hsh.ps.initialisation` -> ``(N, 3)`` normals: robust Lambertian start
+3. (``materials="auto"`` only) :mod:`~torch_hsh.ps.materials` -> ``M``: the number of basis BRDFs by held-out-light
+   cross-validation; then :mod:`~torch_hsh.ps.calibration` -> ``Calibration``: shared basis BRDFs on a pixel subset
+4. :mod:`~torch_hsh.ps.refinement` -> ``Refinement``: per-pixel normals (and mixing weights), in chunks
+5. :mod:`~torch_hsh.ps.coefficients` -> ``Coefficients``: final coefficients, non-negativity safeguard
+6. :mod:`~torch_hsh.ps.result` -> ``HSHResult``: maps, albedo, relighting, holdout evaluation
+
 Around the stages, all opt-in: the cast-shadow loop (:mod:`.shadows`), the removal of one
 bounce of interreflection (:mod:`.interreflections`) and the whole-surface stage
 (:mod:`.whole_surface`), in that order. The whole-surface stage brings one (safeguarded) round
