@@ -341,8 +341,18 @@ def _ddp_worker(rank: int, world: int, store: str, out: str) -> None:
 def test_ddp_two_processes(tmp_path):
     import torch.multiprocessing as mp
 
+    import time
+
+    torch_hsh.hsh(torch.tensor([[0.0, 0.0, 1.0]]), order=1)  # the C kernels compiled before the workers start
     out = str(tmp_path / "result.pt")
-    mp.spawn(_ddp_worker, args=(2, str(tmp_path / "store"), out), nprocs=2, join=True)
+    ctx = mp.start_processes(_ddp_worker, args=(2, str(tmp_path / "store"), out), nprocs=2, join=False,
+                             start_method="spawn")
+    deadline = time.monotonic() + 240  # a worker that dies or hangs must not hang the suite
+    while not ctx.join(timeout=5):
+        if time.monotonic() > deadline:
+            for proc in ctx.processes:
+                proc.kill()
+            pytest.fail("the two DDP workers did not finish within 240 s")
     res = torch.load(out)
     p0, p1 = res["params"]
     assert torch.equal(p0, p1)
