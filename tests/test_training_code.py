@@ -345,14 +345,18 @@ def test_ddp_two_processes(tmp_path):
 
     torch_hsh.hsh(torch.tensor([[0.0, 0.0, 1.0]]), order=1)  # the C kernels compiled before the workers start
     out = str(tmp_path / "result.pt")
-    ctx = mp.start_processes(_ddp_worker, args=(2, str(tmp_path / "store"), out), nprocs=2, join=False,
-                             start_method="spawn")
-    deadline = time.monotonic() + 240  # a worker that dies or hangs must not hang the suite
-    while not ctx.join(timeout=5):
-        if time.monotonic() > deadline:
-            for proc in ctx.processes:
-                proc.kill()
-            pytest.fail("the two DDP workers did not finish within 240 s")
+    for attempt in range(2):  # gloo's rendezvous can stall on a loaded machine: one fresh try, then fail
+        ctx = mp.start_processes(_ddp_worker, args=(2, str(tmp_path / f"store{attempt}"), out), nprocs=2,
+                                 join=False, start_method="spawn")
+        deadline = time.monotonic() + 120  # a worker that dies or hangs must not hang the suite
+        while not ctx.join(timeout=5) and time.monotonic() < deadline:
+            pass
+        if all(not proc.is_alive() for proc in ctx.processes):
+            break
+        for proc in ctx.processes:
+            proc.kill()
+    else:
+        pytest.fail("the two DDP workers did not finish within 120 s, twice")
     res = torch.load(out)
     p0, p1 = res["params"]
     assert torch.equal(p0, p1)
