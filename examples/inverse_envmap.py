@@ -65,16 +65,10 @@ SYNTHETIC = [
 
 
 def synthetic_map(sun, sun_rgb, sky_rgb, ground_rgb, height: int = 32) -> EnvironmentMap:
-    """A procedural sky: brighter towards the zenith, a darker ground, a sun lobe ``exp(40 (d . s - 1))``."""
-    from torch_hsh.render.envmap import equirect_directions
+    """A procedural sky (:func:`torch_hsh.render.envmap.procedural_sky`) whose sun lobe peaks at ``0.05 * sun_rgb``."""
+    from torch_hsh.render.envmap import procedural_sky
 
-    d = equirect_directions(height, 2 * height, dtype=DT)
-    s = torch.nn.functional.normalize(torch.tensor(sun, dtype=DT), dim=0)
-    y = d[..., 1:2]
-    sky = torch.tensor(sky_rgb, dtype=DT) * (0.5 + 0.5 * y.clamp(min=0))
-    ground = torch.tensor(ground_rgb, dtype=DT) * (0.6 + 0.4 * (-y).clamp(min=0))
-    lobe = torch.exp(40.0 * ((d * s).sum(-1, keepdim=True) - 1.0)) * torch.tensor(sun_rgb, dtype=DT) * 0.05
-    return EnvironmentMap(torch.where(y >= 0, sky, ground) + lobe)
+    return procedural_sky(sun, [0.05 * c for c in sun_rgb], sky_rgb, ground_rgb, height=height, dtype=DT)
 
 
 def sphere(size: int):

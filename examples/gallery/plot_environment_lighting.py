@@ -16,7 +16,7 @@ import torch
 
 import torch_hsh
 from torch_hsh.brdf import CookTorranceGGX
-from torch_hsh.render.envmap import EnvironmentMap, equirect_directions, render_envmap
+from torch_hsh.render.envmap import procedural_sky, render_envmap
 
 DT = torch.float64
 
@@ -26,13 +26,7 @@ DT = torch.float64
 # darker ground and a sun lobe ``exp(40 (d . s - 1))``, 32 x 64 texels (the maps of
 # ``examples/inverse_envmap.py --synthetic`` with a 10 times brighter sun).
 def sky(sun, sun_rgb, sky_rgb, ground_rgb, height=32):
-    d = equirect_directions(height, 2 * height, dtype=DT)
-    s = torch.nn.functional.normalize(torch.tensor(sun, dtype=DT), dim=0)
-    y = d[..., 1:2]
-    upper = torch.tensor(sky_rgb, dtype=DT) * (0.5 + 0.5 * y.clamp(min=0))
-    lower = torch.tensor(ground_rgb, dtype=DT) * (0.6 + 0.4 * (-y).clamp(min=0))
-    sun_lobe = torch.exp(40.0 * ((d * s).sum(-1, keepdim=True) - 1.0)) * torch.tensor(sun_rgb, dtype=DT) * 0.5
-    return EnvironmentMap(torch.where(y >= 0, upper, lower) + sun_lobe)
+    return procedural_sky(sun, [0.5 * c for c in sun_rgb], sky_rgb, ground_rgb, height=height, dtype=DT)
 
 
 skies = {

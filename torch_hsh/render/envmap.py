@@ -98,6 +98,7 @@ __all__ = [
     "render_envmap_reference",
     "envmap_shading_table",
     "EnvironmentLighting",
+    "procedural_sky",
 ]
 
 #: Map frame (x_m, y_m, z_m = up) to world: world = A @ map.
@@ -543,6 +544,36 @@ class EnvironmentMap:
     def __repr__(self) -> str:
         H, W, C = self.shape
         return f"EnvironmentMap({H}x{W}, C={C}, rotation={self.rotation:g}, dtype={self.data.dtype})"
+
+
+def procedural_sky(sun, sun_rgb, sky_rgb, ground_rgb, height: int = 32, dtype=torch.float64,
+                   device=None) -> "EnvironmentMap":
+    r"""A small procedural sky for examples and tests, no file needed.
+
+    In the map frame (``y`` up, :func:`equirect_directions`): the sky ``sky_rgb * (1 + y) / 2`` above the
+    horizon, the ground ``ground_rgb * (0.6 + 0.4 |y|)`` below it, plus a sun lobe
+    ``sun_rgb * exp(40 (d . s - 1))`` around the direction ``s``.
+
+    Args:
+        sun: ``(3,)`` direction of the sun in the map frame (normalised here).
+        sun_rgb, sky_rgb, ground_rgb: ``(3,)`` RGB radiances (the sun's at the lobe's peak).
+        height: texel rows; the map is ``height x 2 height``.
+
+    Returns:
+        An :class:`EnvironmentMap` of ``(height, 2 height, 3)`` texels.
+
+    Example:
+        >>> env = procedural_sky((0.0, 0.9, 0.44), (2.0, 2.0, 2.2), (0.4, 0.5, 0.7), (0.3, 0.3, 0.28), height=16)
+        >>> tuple(env.data.shape)
+        (16, 32, 3)
+    """
+    d = equirect_directions(height, 2 * height, dtype=dtype, device=device)
+    s = torch.nn.functional.normalize(torch.as_tensor(sun, dtype=dtype, device=device), dim=0)
+    y = d[..., 1:2]
+    upper = torch.as_tensor(sky_rgb, dtype=dtype, device=device) * (0.5 + 0.5 * y.clamp(min=0))
+    lower = torch.as_tensor(ground_rgb, dtype=dtype, device=device) * (0.6 + 0.4 * (-y).clamp(min=0))
+    lobe = torch.exp(40.0 * ((d * s).sum(-1, keepdim=True) - 1.0)) * torch.as_tensor(sun_rgb, dtype=dtype, device=device)
+    return EnvironmentMap(torch.where(y >= 0, upper, lower) + lobe)
 
 
 def _sh_order(k: int, name: str) -> int:
