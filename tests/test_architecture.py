@@ -182,3 +182,36 @@ def test_checker_finds_a_cycle_and_an_upward_import(tmp_path):
     assert layer_of("pkg.sub.b", "pkg", layers) == 1 and layer_of("pkg.sub.a", "pkg", layers) == 0
     with pytest.raises(KeyError, match="pkg.other has no layer"):
         layer_of("pkg.other", "pkg", layers)
+
+
+#: The longest a function's code may be, in lines from its ``def`` to its last line, less its docstring.
+MAX_FUNCTION_LINES = 80
+
+
+def long_functions(root: Path, limit: int = MAX_FUNCTION_LINES) -> List[str]:
+    """``"file:line name (N lines)"`` for every function below ``root`` whose code, less its docstring, is longer
+    than ``limit`` lines."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            lines = node.end_lineno - node.lineno + 1
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+                lines -= first.end_lineno - first.lineno + 1
+            if lines > limit:
+                found.append(f"{path.relative_to(root)}:{node.lineno} {node.name} ({lines} lines)")
+    return found
+
+
+def test_no_function_is_longer_than_the_limit():
+    assert long_functions(PACKAGE) == []
+
+
+def test_long_function_checker_counts_code_not_docstrings(tmp_path):
+    body = "".join(f"    x{i} = {i}\n" for i in range(5))
+    doc = '    """' + "doc\n" * 30 + '    """\n'
+    _write(tmp_path, {"m.py": f"def short():\n{doc}{body}\n\ndef long():\n{body}{body}\n"})
+    assert long_functions(tmp_path, limit=8) == ["m.py:40 long (11 lines)"]
+    assert long_functions(tmp_path, limit=11) == []

@@ -95,3 +95,11 @@ def test_project_files_exist():
         assert (ROOT / name).is_file(), name
     cff = (ROOT / "CITATION.cff").read_text(encoding="utf-8")
     assert "cff-version: 1.2.0" in cff and "Elhabian" in cff
+
+
+def test_citation_and_changelog_name_the_package_version():
+    import torch_hsh
+    cff = (ROOT / "CITATION.cff").read_text(encoding="utf-8")
+    assert f"\nversion: {torch_hsh.__version__}\n" in cff
+    release = torch_hsh.__version__.split(".dev")[0]
+    assert f"## {release}" in (ROOT / "CHANGELOG.md").read_text(encoding="utf-8")

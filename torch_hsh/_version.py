@@ -1,2 +1,2 @@
 """The package version (one place: setup reads it from here, torch_hsh and the CLI import it)."""
-__version__ = "0.1.0"
+__version__ = "0.2.0.dev0"

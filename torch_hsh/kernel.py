@@ -491,10 +491,6 @@ def _iso_dirs(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
     return _iso_kernel_t(zi, zo, a, rho, sio, vi & vo, order, same=same)
 
 
-def _iso_cosines_flat(zi: torch.Tensor, zo: torch.Tensor, cd: torch.Tensor, order: int) -> torch.Tensor:
-    return _iso_kernel_t(*_iso_cosines_geom(zi, zo, cd), order)
-
-
 _Geom = Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 
 
@@ -509,10 +505,6 @@ def _iso_cosines_geom(zi: torch.Tensor, zo: torch.Tensor, cd: torch.Tensor) -> _
     a = sin_prod * cd.clamp(-1.0, 1.0)
     sio = _safe_s(zi_c) * _safe_s(zo_c)
     return zi_c, zo_c, a, rho, sio, valid
-
-
-def _iso_world_flat(wi: torch.Tensor, wo: torch.Tensor, nrm: torch.Tensor, order: int) -> torch.Tensor:
-    return _iso_kernel_t(*_iso_world_geom(wi, wo, nrm), order)
 
 
 def _iso_world_geom(wi: torch.Tensor, wo: torch.Tensor, nrm: torch.Tensor) -> _Geom:
@@ -621,6 +613,17 @@ def _run_rows(fn, K: int, *inputs: torch.Tensor) -> torch.Tensor:
     if _graph() or _functorch_active() or _forward_ad() or inputs[0].shape[0] <= rows:
         return fn(*inputs).t().contiguous()
     return _RowChunked.apply(lambda *xs: fn(*xs).t(), K, rows, *inputs)
+
+
+def _iso_from_geometry(geom, inputs: Tuple[torch.Tensor, torch.Tensor, torch.Tensor], order: int, K: int) -> torch.Tensor:
+    """The isotropic basis ``(N, K)`` of flat row-aligned ``inputs``, through ``geom(*inputs)`` (a :data:`_Geom`):
+    the fused C kernel eagerly, its ``torch.library`` operator in a recorded graph, else the pure-torch kernel
+    in row chunks."""
+    if _native_ok(inputs[0]):
+        return _IsoCore.apply(*geom(*inputs), order)
+    if _graph_ok(inputs[0]):
+        return _OPS["isotropic_core"](*geom(*inputs), order)
+    return _run_rows(lambda a, b, c: _iso_kernel_t(*geom(a, b, c), order), K, *inputs)
 
 
 def _check_group(named, dirs: bool = True, defer_values: bool = False) -> bool:
@@ -1482,13 +1485,7 @@ def helmholtz_isotropic_cosines(
     lead = broadcast_shapes([("cos_i", cos_i.shape), ("cos_o", cos_o.shape), ("cos_dphi", cos_dphi.shape)])
     zi, zo, cd = (_flat(t, lead, ()) for t in (cos_i, cos_o, cos_dphi))
     K = (order + 1) * (order + 2) * (order + 3) // 6
-    if _native_ok(zi):
-        out = _IsoCore.apply(*_iso_cosines_geom(zi, zo, cd), order)
-    elif _graph_ok(zi):
-        out = _OPS["isotropic_core"](*_iso_cosines_geom(zi, zo, cd), order)
-    else:
-        out = _run_rows(lambda a, b, c: _iso_cosines_flat(a, b, c, order), K, zi, zo, cd)
-    return _shaped(out, lead, K)
+    return _shaped(_iso_from_geometry(_iso_cosines_geom, (zi, zo, cd), order, K), lead, K)
 
 
 def helmholtz_anisotropic(wi: torch.Tensor, wo: torch.Tensor, order: int) -> torch.Tensor:
@@ -1567,13 +1564,7 @@ def helmholtz_isotropic_world(
     lead = broadcast_shapes([("wi", wi.shape[:-1]), ("wo", wo.shape[:-1]), ("normal", normal.shape[:-1])])
     wi, wo, nrm = (_flat(t, lead) for t in (wi, wo, normal))
     K = (order + 1) * (order + 2) * (order + 3) // 6
-    if _native_ok(wi):
-        out = _IsoCore.apply(*_iso_world_geom(wi, wo, nrm), order)
-    elif _graph_ok(wi):
-        out = _OPS["isotropic_core"](*_iso_world_geom(wi, wo, nrm), order)
-    else:
-        out = _run_rows(lambda a, b, c: _iso_world_flat(a, b, c, order), K, wi, wo, nrm)
-    return _shaped(out, lead, K)
+    return _shaped(_iso_from_geometry(_iso_world_geom, (wi, wo, nrm), order, K), lead, K)
 
 
 def _normalize3(d: torch.Tensor) -> torch.Tensor:

@@ -397,14 +397,12 @@ class HelmholtzBRDF(nn.Module):
             return fn(*xs).to(out)
 
     def _check_like(self, t: torch.Tensor, name: str) -> None:
-        c = self.coefficients
-        if t.dtype != c.dtype:
+        if t.dtype != self.coefficients.dtype:
             raise TypeError(
-                f"`{name}` has dtype {t.dtype} but the module's coefficients are {c.dtype}; "
+                f"`{name}` has dtype {t.dtype} but the module's coefficients are {self.coefficients.dtype}; "
                 f"convert the input or call module.to({t.dtype})"
             )
-        if t.device != c.device:
-            self._check_device(t, name)
+        self._check_device(t, name)
 
     def _check_device(self, t: torch.Tensor, name: str) -> None:
         c = self.coefficients
