@@ -101,3 +101,75 @@ def test_deepzoom_overwrite_removes_stale_tiles(tmp_path):
     write_deepzoom(tmp_path / "p", _image(600, 600), fmt="png")
     write_deepzoom(tmp_path / "p", _image(100, 100), fmt="png")
     assert sorted(p.name for p in (tmp_path / "p_files").iterdir()) == ["0"]
+
+
+# --------------------------------------------------------------------------- #
+# non-negative export
+# --------------------------------------------------------------------------- #
+def _dense_cap(max_deg, nt=120, nphi=480):
+    """A test grid of the cap, independent of the solver's: uniform in theta and phi, offset from its rings."""
+    t = np.radians(max_deg) * (np.arange(nt) + 0.37) / nt
+    t = np.concatenate([t, [np.radians(max_deg)]])
+    ph = 2 * np.pi * (np.arange(nphi) + 0.21) / nphi
+    T, P = np.meshgrid(t, ph, indexing="ij")
+    d = np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], -1).reshape(-1, 3)
+    return torch.tensor(d, dtype=torch.float64)
+
+
+def _negative_scene():
+    from torch_hsh.render import scenes
+
+    n, m = scenes.sphere_normals(20, radius=0.9, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    a = torch.zeros(20, 20, 3, 4, dtype=torch.float64)
+    a[..., 0] = 0.3 + 1.5 * torch.rand(20, 20, 3, generator=g, dtype=torch.float64)
+    a[..., 1:] = 0.6 * torch.rand(20, 20, 3, 3, generator=g, dtype=torch.float64)  # glossy: lobes the cap fit rings
+    return n, m, a
+
+
+@pytest.mark.parametrize("terms", [9, 16])
+def test_nonnegative_rti_sum_is_nonnegative_and_feasible_pixels_unchanged(terms):
+    from torch_hsh.rti import OPENLIME_THETA_CLAMP, evaluate_rti, nonnegative_rti, project_to_rti
+
+    n, m, a = _negative_scene()
+    c0 = project_to_rti(n, a, terms, mask=m, exposure=0.8, max_angle_deg=50.0, nz=12, nphi=24)
+    c1 = project_to_rti(n, a, terms, mask=m, exposure=0.8, max_angle_deg=50.0, nz=12, nphi=24, nonnegative=True)
+    dense = _dense_cap(math.degrees(OPENLIME_THETA_CLAMP))
+    v0 = evaluate_rti(c0, dense)  # (K, H, W, 3)
+    v1 = evaluate_rti(c1, dense)
+    neg = (v0 < 0).any(0)
+    assert neg[m].float().mean() > 0.05, "the fixture must have negative sums to remove"
+    assert float(v1.min()) > -1e-3  # non-negative to rounding (half a code is 2e-3) on a grid the solver never saw
+    changed = (c1 != c0).any(-1)
+    assert not changed[~neg].any()  # pixels and colours already non-negative everywhere are unchanged...
+    assert changed[neg].float().mean() > 0.9  # ...the others moved
+    assert (c1[~m] == 0).all()
+    # beyond the clamp a viewer evaluates at the clamp: the sum is non-negative at every light of the hemisphere
+    grazing = torch.tensor([[math.cos(p), math.sin(p), 0.01] for p in np.linspace(0, 2 * np.pi, 50)], dtype=torch.float64)
+    assert float(evaluate_rti(c1, grazing, OPENLIME_THETA_CLAMP).min()) > -1e-3
+    # the constrained fit is the nearest: it moves the function less than the constant shift that also removes it
+    shift = c0.clone()
+    shift[..., 0] = shift[..., 0] + (-v0.amin(0)).clamp(min=0) * math.sqrt(2 * math.pi)
+    inside = _dense_cap(50.0, 30, 120)
+    err = lambda c: float((evaluate_rti(c, inside) - evaluate_rti(c0, inside))[:, m].pow(2).mean())  # noqa: E731
+    assert err(c1) < 0.5 * err(shift)
+    # the library call on the coefficients gives the same as the option (identity metric: hemisphere projection)
+    h0 = project_to_rti(n, a, terms, mask=m, exposure=0.8, nz=12, nphi=24)
+    h1 = project_to_rti(n, a, terms, mask=m, exposure=0.8, nz=12, nphi=24, nonnegative=True)
+    assert torch.allclose(nonnegative_rti(h0), h1, atol=1e-12)
+
+
+def test_nonnegative_rti_margin_and_arguments():
+    from torch_hsh.rti import evaluate_rti, nonnegative_rti
+
+    c = torch.zeros(5, 3, 9, dtype=torch.float64)
+    c[..., 0] = 0.4
+    c[..., 1] = torch.linspace(0, 1.5, 5, dtype=torch.float64)[:, None]
+    got = nonnegative_rti(c, margin=0.01)
+    dense = _dense_cap(81.0, 40, 160)
+    assert float(evaluate_rti(got, dense).min()) >= 0.01 - 1e-3
+    assert (got[0] == c[0]).all()  # a constant 0.4 / sqrt(2 pi) meets the margin
+    with pytest.raises(ValueError, match="max_angle_deg"):
+        nonnegative_rti(c, max_angle_deg=0)
+    with pytest.raises(ValueError, match="metric"):
+        nonnegative_rti(c, metric=torch.eye(4, dtype=torch.float64))
