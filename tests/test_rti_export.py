@@ -173,3 +173,77 @@ def test_nonnegative_rti_margin_and_arguments():
         nonnegative_rti(c, max_angle_deg=0)
     with pytest.raises(ValueError, match="metric"):
         nonnegative_rti(c, metric=torch.eye(4, dtype=torch.float64))
+
+
+# --------------------------------------------------------------------------- #
+# the real viewer: OpenLIME in headless Chromium (skipped where either is missing)
+# --------------------------------------------------------------------------- #
+def _openlime_js():
+    import os
+    from pathlib import Path
+
+    env = os.environ.get("TORCH_HSH_OPENLIME")  # a folder holding openlime.min.js
+    here = Path(__file__).resolve()
+    for d in ([Path(env)] if env else []) + [p / "shared" / "tools" / "openlime" for p in here.parents[1:3]]:
+        if (d / "openlime.min.js").is_file():
+            return d / "openlime.min.js"
+    return None
+
+
+_PAGE = """<!DOCTYPE html><html><head><meta charset="utf-8">
+<style>html,body{margin:0;padding:0;background:#000;overflow:hidden} .openlime{width:100vw;height:100vh}</style>
+<script src="openlime.min.js"></script></head><body><div class="openlime"></div><script>
+const q = new URLSearchParams(location.search);
+const lime = new OpenLIME.Viewer('.openlime', {background: [0, 0, 0, 1]});
+const layer = new OpenLIME.Layer({type: 'rti', layout: q.get('layout'), url: q.get('dir') + '/info.json'});
+lime.addLayer('rti', layer);
+const l = q.get('light').split(',').map(Number);
+layer.setLight([l[0], l[1]], 0);
+</script></body></html>
+"""
+
+
+def test_openlime_draws_the_deepzoom_folder_like_the_image_folder(tmp_path):
+    import functools
+    import http.server
+    import shutil
+    import subprocess
+    import threading
+
+    chromium = next((shutil.which(c) for c in ("chromium", "chromium-browser", "google-chrome") if shutil.which(c)),
+                    None)
+    js = _openlime_js()
+    if chromium is None or js is None:
+        pytest.skip("needs Chromium (apt-get install chromium) and an OpenLIME build (openlime.min.js in "
+                    "$TORCH_HSH_OPENLIME or ../shared/tools/openlime)")
+    shutil.copy(js, tmp_path / "openlime.min.js")
+    (tmp_path / "page.html").write_text(_PAGE, encoding="utf-8")
+    y, x = torch.meshgrid(torch.linspace(-1, 1, 270, dtype=torch.float64),
+                          torch.linspace(-1, 1, 300, dtype=torch.float64), indexing="ij")
+    c = torch.zeros(270, 300, 3, 9, dtype=torch.float64)
+    c[..., 0] = 1.2 + 0.4 * torch.sin(6 * x)[..., None]
+    c[..., 1] = 0.3 * torch.cos(5 * y)[..., None]
+    c[..., 2] = 0.2 * (x * y)[..., None] * torch.tensor([1.0, 0.5, -0.5], dtype=torch.float64)
+    save_relight(tmp_path / "image", c)
+    save_relight(tmp_path / "deepzoom", c, layout="deepzoom")  # two levels: 150 x 135 and 300 x 270
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path))
+    handler.log_message = lambda *a, **k: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        shots = {}
+        for layout in ("image", "deepzoom"):
+            out = tmp_path / f"{layout}.png"
+            url = f"http://127.0.0.1:{server.server_port}/page.html?layout={layout}&dir={layout}&light=0.3,0.2"
+            try:
+                subprocess.run([chromium, "--headless=new", "--no-sandbox", "--enable-unsafe-swiftshader",
+                                "--use-angle=swiftshader", "--force-device-scale-factor=1", "--hide-scrollbars",
+                                "--window-size=400,400", "--virtual-time-budget=8000", f"--screenshot={out}", url],
+                               capture_output=True, timeout=120, check=True)
+            except subprocess.TimeoutExpired:
+                pytest.skip(f"headless {chromium} did not finish a WebGL2 screenshot in 120 s on this machine")
+            shots[layout] = np.asarray(Image.open(out).convert("RGB")).astype(float)
+    finally:
+        server.shutdown()
+    assert shots["image"].mean() > 5  # it drew something
+    assert np.sqrt(((shots["image"] - shots["deepzoom"]) ** 2).mean()) < 1.0
