@@ -384,6 +384,20 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
     assert c.shape == (size * 2, size * 3, 3, 9) and c2.shape == c.shape
     front = viewer_relight(c, [0, 0, 1], RTIVIEWER_THETA_CLAMP)
     assert front[mask.numpy()].mean() > 0.2 and np.abs(front[~mask.numpy()]).max() < 0.02
+    # default: non-negative at every light within OpenLIME's clamp; --allow-negative: the plain fit;
+    # --layout deepzoom: the same codes as Deep Zoom pyramids
+    grazing = [[math.cos(p) * math.sin(t), math.sin(p) * math.sin(t), math.cos(t)]
+               for t in np.radians([30, 60, 81]) for p in np.linspace(0, 2 * np.pi, 16, endpoint=False)]
+    low = min(float(viewer_relight(c, li, OPENLIME_THETA_CLAMP).min()) for li in grazing)
+    assert low > -0.02  # the 8-bit quantisation of the .rti, at most
+    assert cli.main(["rti", str(tmp_path / "res"), "--rti", str(tmp_path / "neg.rti"), "--allow-negative",
+                     "--relight", str(tmp_path / "dz"), "--layout", "deepzoom", "--quiet"]) == 0
+    c3, _ = read_rti_file(tmp_path / "neg.rti")
+    assert np.abs(c3 - c).max() > 0.01  # the constraint changed some pixels of this capture
+    assert (tmp_path / "dz" / "plane_8.dzi").is_file() and (tmp_path / "dz" / "plane_8_files" / "0" / "0_0.jpg").is_file()
+    with pytest.raises(SystemExit) as e:  # --layout is for the relight folder
+        cli.main(["rti", str(tmp_path / "res"), "--rti", str(tmp_path / "q.rti"), "--layout", "deepzoom", "--quiet"])
+    assert e.value.code == 2
     with pytest.raises(SystemExit) as e:
         cli.main(["rti", str(tmp_path / "res"), "--terms", "16", "--relight", str(tmp_path / "x"), "--quiet"])
     assert e.value.code == 2

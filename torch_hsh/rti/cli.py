@@ -7,9 +7,10 @@ r"""The RTI subcommands of ``torch-hsh`` (registered by :func:`torch_hsh.cli.bui
   DiLiGenT folder (``filenames.txt`` or its ``*.png`` images).
 * ``torch-hsh view RESULT --out RESULT.html`` -- a self-contained WebGL2 relighting viewer of
   the full model (:func:`torch_hsh.rti.viewer.write_viewer`).
-* ``torch-hsh rti RESULT --terms 9 [--rti OUT.rti] [--relight OUT_DIR]`` -- the
-  HSH RTI export of a ``torch-hsh ps`` result (:func:`torch_hsh.rti.project_to_rti`,
-  :func:`torch_hsh.rti.io.write_rti_hsh`, :func:`torch_hsh.rti.io.save_relight`).
+* ``torch-hsh rti RESULT --terms 9 [--rti OUT.rti] [--relight OUT_DIR [--layout image|deepzoom|deepzoom1px]]
+  [--allow-negative]`` -- the HSH RTI export of a ``torch-hsh ps`` result (:func:`torch_hsh.rti.project_to_rti`,
+  non-negative by default: :func:`torch_hsh.rti.nonnegative_rti`; :func:`torch_hsh.rti.io.write_rti_hsh`,
+  :func:`torch_hsh.rti.io.save_relight`).
 
 Exit status as for the other subcommands: 2 for a bad argument value (e.g. a
 circle outside the image), 1 for a bad input file (named), 0 on success.
@@ -240,6 +241,15 @@ def _rti_arguments(q) -> None:
     q.add_argument("--terms", type=int, choices=(9, 16), default=9, help="number of HSH terms (default 9)")
     q.add_argument("--rti", default=None, help="write this .rti file (RTIViewer HSH)")
     q.add_argument("--relight", default=None, help="write this relight/OpenLIME folder (info.json + plane_*.jpg; 9 terms)")
+    q.add_argument("--layout", choices=("image", "deepzoom", "deepzoom1px"), default="image",
+                   help="planes of the --relight folder: image (default): one plane_N.jpg each; deepzoom: a Deep Zoom "
+                        "pyramid each (plane_N.dzi + plane_N_files/LEVEL/COL_ROW.jpg, 254-pixel tiles, 1-pixel overlap, "
+                        "folder 0 the one-tile level), for OpenLIME's layout 'deepzoom' and relight; deepzoom1px: every "
+                        "level of the Deep Zoom specification, down to 1x1 (OpenSeadragon)")
+    q.add_argument("--allow-negative", action="store_true",
+                   help="keep the plain least-squares coefficients even where their sum is negative at some light "
+                        "(default: the nearest coefficients whose sum is >= 0 at every light within OpenLIME's clamp, "
+                        "81.4 deg from the view; OpenLIME shows a negative sum as a bright artefact)")
     _add_exposure(q)
     q.add_argument("--linear-output", action="store_true",
                    help="write linear values (default: sRGB-encoded, as RTI viewers expect)")
@@ -257,6 +267,8 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     say = _say(args)
     if args.rti is None and args.relight is None:
         ap.error("give --rti OUT.rti and/or --relight OUT_DIR")
+    if args.layout != "image" and args.relight is None:
+        ap.error("argument --layout: applies to the --relight folder; give --relight OUT_DIR")
     if args.relight is not None and args.terms != 9:
         ap.error("argument --relight: relight/OpenLIME evaluate 9 HSH terms only; use --terms 9")
     for opt, val in (("--rti", args.rti), ("--relight", args.relight)):
@@ -289,18 +301,20 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         lz = torch.nn.functional.normalize(res.lights.double(), dim=-1)[:, 2].clamp(-1, 1)
         max_angle = min(90.0, float(torch.rad2deg(torch.arccos(lz)).max()))
     coefficients = project_to_rti(n, a, args.terms, mask=mask, exposure=exposure, max_angle_deg=max_angle,
-                                  linear=args.linear_output)
+                                  linear=args.linear_output, nonnegative=not args.allow_negative)
     written = []
     if args.rti is not None:
         write_rti_hsh(args.rti, coefficients, overwrite=args.overwrite)
         written.append(args.rti)
     if args.relight is not None:
-        save_relight(args.relight, coefficients, overwrite=args.overwrite)
+        save_relight(args.relight, coefficients, overwrite=args.overwrite, layout=args.layout)
         written.append(args.relight)
     say(f"{args.terms}-term HSH RTI of {int(mask.sum())} pixels, lights within {max_angle:.1f} deg, "
         f"exposure {exposure:.4g}, "
-        f"{'linear' if args.linear_output else 'sRGB'} values; wrote {', '.join(written)}")
-    return {"exposure": exposure, "terms": args.terms, "max_angle_deg": max_angle, "written": written}
+        f"{'linear' if args.linear_output else 'sRGB'} values"
+        f"{'' if args.allow_negative else ', non-negative within 81.4 deg'}; wrote {', '.join(written)}")
+    return {"exposure": exposure, "terms": args.terms, "max_angle_deg": max_angle, "written": written,
+            "nonnegative": not args.allow_negative, "layout": args.layout}
 
 
 # --------------------------------------------------------------------------- #

@@ -96,6 +96,9 @@ __all__ = [
     "save_rti",
     "write_rti_hsh",
     "save_relight",
+    "write_deepzoom",
+    "deepzoom_levels",
+    "RELIGHT_LAYOUTS",
 ]
 
 #: Light vectors shorter than this are rejected as zero vectors (``relight`` uses 1e-4).
@@ -606,8 +609,107 @@ def write_rti_hsh(path, coefficients, overwrite: bool = False) -> Path:
     return p
 
 
-def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwrite: bool = False) -> Path:
-    r"""Write 9-term RTI HSH coefficient maps as a relight / OpenLIME folder (``info.json`` + ``plane_*.jpg``).
+#: Layouts of the relight / OpenLIME folder (:func:`save_relight`), named as OpenLIME's ``Layer({layout: ...})``.
+RELIGHT_LAYOUTS = ("image", "deepzoom", "deepzoom1px")
+#: Deep Zoom tiles: 254 pixels a side plus a 1-pixel overlap (what libvips and relight write; 256 with both overlaps).
+DEEPZOOM_TILE = 254
+DEEPZOOM_OVERLAP = 1
+
+
+def _halve(img: np.ndarray) -> np.ndarray:
+    """Next Deep Zoom level: ``(ceil(H/2), ceil(W/2))``, each pixel the rounded mean of its 2 x 2 block (an odd last
+    row or column is repeated). The codes are an affine function of the coefficients (one scale and bias per plane),
+    so this is the mean of the coefficients too."""
+    h, w = img.shape[:2]
+    a = np.pad(img.astype(np.uint16), ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+    s = a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]
+    return ((s + 2) // 4).astype(np.uint8)
+
+
+def deepzoom_levels(width: int, height: int, tile: int = DEEPZOOM_TILE, layout: str = "deepzoom") -> List[Tuple[int, int]]:
+    """``(width, height)`` of each folder ``0, 1, ...`` of a Deep Zoom pyramid, the last one full size.
+
+    * ``"deepzoom1px"``: the Deep Zoom specification -- level ``k`` is ``ceil(W / 2^(M - k))`` wide with
+      ``M = ceil(log2(max(W, H)))``, so level 0 is 1 x 1 (what libvips writes; OpenSeadragon reads it).
+    * ``"deepzoom"``: the same sizes from the first level that fits one tile: folder 0 is one tile
+      (what relight writes and OpenLIME's ``layout: "deepzoom"`` reads: it fetches folders
+      ``0 .. ceil(log2(max(W, H) / tile))``).
+
+    Example:
+        >>> deepzoom_levels(600, 300)
+        [(150, 75), (300, 150), (600, 300)]
+        >>> len(deepzoom_levels(600, 300, layout="deepzoom1px"))
+        11
+    """
+    if layout not in ("deepzoom", "deepzoom1px"):
+        raise ValueError(f"`layout` must be 'deepzoom' or 'deepzoom1px', got {layout!r}")
+    big = max(int(width), int(height))
+    top = (big - 1).bit_length()  # ceil(log2(big)); 0 for a 1 x 1 image
+    sizes = [(-(-int(width) // (1 << (top - k))), -(-int(height) // (1 << (top - k)))) for k in range(top + 1)]
+    if layout == "deepzoom":
+        sizes = [wh for wh in sizes if max(wh) <= tile][-1:] + [wh for wh in sizes if max(wh) > tile]
+    return sizes
+
+
+def _write_tile(f: Path, img: np.ndarray, fmt: str, quality: int) -> None:
+    from PIL import Image
+
+    img = np.ascontiguousarray(img)
+    if fmt == "png":
+        _write_png(f, img)
+    else:
+        Image.fromarray(img).save(f, quality=int(quality), subsampling=0)
+
+
+def write_deepzoom(base, image: np.ndarray, fmt: str = "jpg", quality: int = 95, layout: str = "deepzoom",
+                   tile: int = DEEPZOOM_TILE, overlap: int = DEEPZOOM_OVERLAP) -> Path:
+    r"""Write an 8-bit RGB image as a Deep Zoom pyramid: ``BASE.dzi`` and ``BASE_files/LEVEL/COL_ROW.FMT``.
+
+    Tile ``(col, row)`` of a level ``w x h`` holds the pixels ``[col tile - overlap, (col + 1) tile + overlap)``
+    (clipped to ``[0, w)``; no overlap before the first column), the same for rows; levels halve the size
+    rounding up (:func:`deepzoom_levels`; ``layout`` picks the first level), each pixel the mean of a 2 x 2 block.
+
+    Args:
+        base: the path without suffix (``folder/plane_0``).
+        image: ``(H, W, 3)`` uint8.
+        fmt: ``"jpg"`` or ``"png"`` (the ``Format`` of the ``.dzi``: OpenLIME takes the tiles' suffix from it).
+
+    Returns:
+        The ``.dzi`` path.
+    """
+    import shutil
+
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"`image` must be (H, W, 3) uint8, got {img.dtype} {img.shape}")
+    base = Path(base)
+    H, W = img.shape[:2]
+    sizes = deepzoom_levels(W, H, tile, layout)
+    files = base.with_name(base.name + "_files")
+    if files.exists():
+        shutil.rmtree(files)  # tiles of an earlier export (another size or layout) must not linger
+    levels = [img]
+    while len(levels) < len(sizes):
+        levels.append(_halve(levels[-1]))
+    for k, ((w, h), lev) in enumerate(zip(sizes, reversed(levels))):
+        assert lev.shape[:2] == (h, w), (lev.shape, w, h)
+        d = files / str(k)
+        d.mkdir(parents=True)
+        for row in range(-(-h // tile)):
+            y0, y1 = max(0, row * tile - overlap), min(h, (row + 1) * tile + overlap)
+            for col in range(-(-w // tile)):
+                x0, x1 = max(0, col * tile - overlap), min(w, (col + 1) * tile + overlap)
+                _write_tile(d / f"{col}_{row}.{fmt}", lev[y0:y1, x0:x1], fmt, quality)
+    dzi = base.with_name(base.name + ".dzi")
+    dzi.write_text('<?xml version="1.0" encoding="UTF-8"?>\n'
+                   f'<Image xmlns="http://schemas.microsoft.com/deepzoom/2008" Format="{fmt}" Overlap="{overlap}" '
+                   f'TileSize="{tile}">\n  <Size Width="{W}" Height="{H}"/>\n</Image>\n', encoding="utf-8")
+    return dzi
+
+
+def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwrite: bool = False,
+                 layout: str = "image") -> Path:
+    r"""Write 9-term RTI HSH coefficient maps as a relight / OpenLIME folder (``info.json`` + planes).
 
     Args:
         path: output folder (created; must be empty unless ``overwrite``).
@@ -615,10 +717,17 @@ def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwr
         fmt: ``"jpg"`` (default; what relight writes, lossy) or ``"png"``
             (lossless, ``"format": "png"`` in ``info.json``).
         quality: JPEG quality (written to ``info.json`` too).
+        layout: how the planes are stored, named as OpenLIME's ``Layer({type: "rti", layout})`` that reads them:
+            ``"image"`` (default): one ``plane_N.FMT`` per plane; ``"deepzoom"``: a Deep Zoom pyramid per plane,
+            ``plane_N.dzi`` + ``plane_N_files/LEVEL/COL_ROW.FMT``, 254-pixel tiles with a 1-pixel overlap, folder 0
+            the level that fits one tile (relight's layout, the one OpenLIME's ``"deepzoom"`` reads);
+            ``"deepzoom1px"``: the same with every level of the Deep Zoom specification, down to 1 x 1
+            (OpenSeadragon; OpenLIME 1.2 has no RTI loader for it). See :func:`write_deepzoom`.
 
     Quantisation: per plane (term and colour) ``scale = max - min`` and
     ``bias = -min / scale``; the error of a coefficient is at most
-    ``scale / 510`` plus the JPEG error.
+    ``scale / 510`` plus the JPEG error. The full-size level of a pyramid holds
+    the same codes as the ``image`` layout.
 
     Returns:
         The folder.
@@ -628,14 +737,14 @@ def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwr
     """
     import json
 
-    from PIL import Image
-
     c = _coeff_maps(coefficients)
     if c.shape[3] != 9:
         raise ValueError(f"relight/OpenLIME evaluate 9 HSH terms; got {c.shape[3]}")
     fmt = fmt.lower().lstrip(".")
     if fmt not in ("jpg", "png"):
         raise ValueError(f"`fmt` must be 'jpg' or 'png', got {fmt!r}")
+    if layout not in RELIGHT_LAYOUTS:
+        raise ValueError(f"`layout` must be one of {', '.join(RELIGHT_LAYOUTS)}, got {layout!r}")
     H, W = c.shape[:2]
     folder = _output_folder(path, overwrite)
     planes = c.transpose(0, 1, 3, 2).reshape(H, W, 27)  # plane index 3 j + colour
@@ -645,11 +754,10 @@ def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwr
     codes = _quantise(planes, lo, span)
     for j in range(9):
         img = np.ascontiguousarray(codes[..., 3 * j: 3 * j + 3])
-        f = folder / f"plane_{j}.{fmt}"
-        if fmt == "png":
-            _write_png(f, img)
+        if layout == "image":
+            _write_tile(folder / f"plane_{j}.{fmt}", img, fmt, quality)
         else:
-            Image.fromarray(img).save(f, quality=int(quality), subsampling=0)
+            write_deepzoom(folder / f"plane_{j}", img, fmt=fmt, quality=quality, layout=layout)
     info = {"width": W, "height": H, "format": fmt, "type": "hsh", "colorspace": "rgb", "nplanes": 27,
             "quality": int(quality), "materials": [{"scale": [float(v) for v in span],
                                                     "bias": [float(v) for v in -lo / span]}]}
