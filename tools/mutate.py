@@ -5,7 +5,7 @@ Each module is mutated in its own scratch copy of the project (``build/mutmut/<m
 judged by ``tests/test_kernel.py`` alone. mutmut's result cache lives in that copy: a second run only
 re-tests mutants whose function or tests changed.
 
-    python tools/mutate.py                 # all three modules
+    python tools/mutate.py                 # all modules
     python tools/mutate.py kernel           # one module
     python tools/mutate.py kernel --max-children 2
 
@@ -41,6 +41,15 @@ MODULES = {
                 ["tests/test_fitting.py", "-m", "not slow"]),
     "_integrate": (("torch_hsh/fitting/rules.py", "torch_hsh/fitting/convergence.py"),
                    ["tests/test_fitting.py", "-m", "not slow"]),
+    # photometric stereo: the optimiser and the observation model, judged by the PS unit tests
+    # (test_ps.py without its slow end-to-end runs; test_ps_shadows.py also drives the observation model)
+    "ps_optim": ("torch_hsh/ps/optim.py", ["tests/test_ps.py", "-m", "not slow"]),
+    "ps_observations": ("torch_hsh/ps/observations.py",
+                        ["tests/test_ps.py", "tests/test_ps_shadows.py", "-m", "not slow"]),
+    # the readers and writers, judged by their own tests
+    "io": (("torch_hsh/io/__init__.py", "torch_hsh/io/diligent.py", "torch_hsh/io/exr.py", "torch_hsh/io/merl.py"),
+           ["tests/test_io_diligent.py", "tests/test_io_exr.py", "tests/test_io_rti.py", "tests/test_merl.py",
+            "tests/test_fit_merl.py", "-m", "not slow"]),
 }
 
 
