@@ -75,7 +75,7 @@ from __future__ import annotations
 import math
 import os
 from functools import lru_cache
-from typing import Dict, Optional, Tuple
+from typing import Callable, Dict, Optional, Tuple
 
 import torch
 
@@ -615,7 +615,7 @@ def _run_rows(fn, K: int, *inputs: torch.Tensor) -> torch.Tensor:
     return _RowChunked.apply(lambda *xs: fn(*xs).t(), K, rows, *inputs)
 
 
-def _iso_from_geometry(geom, inputs: Tuple[torch.Tensor, torch.Tensor, torch.Tensor], order: int, K: int) -> torch.Tensor:
+def _iso_from_geometry(geom: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], _Geom], inputs: Tuple[torch.Tensor, torch.Tensor, torch.Tensor], order: int, K: int) -> torch.Tensor:
     """The isotropic basis ``(N, K)`` of flat row-aligned ``inputs``, through ``geom(*inputs)`` (a :data:`_Geom`):
     the fused C kernel eagerly, its ``torch.library`` operator in a recorded graph, else the pure-torch kernel
     in row chunks."""

@@ -557,10 +557,12 @@ def nonnegative_rti(
         sel = bad[s0: s0 + chunk_size]
         y0 = c[sel] @ L  # (P, T): rows (L^T c)^T
         y = y0
-        W = BW = loW = None
+        W: Optional[torch.Tensor] = None
+        BW: Optional[torch.Tensor] = None
+        loW: Optional[torch.Tensor] = None
         for _ in range(int(rounds)):
             low = (y @ B.T - lo).topk(k, dim=1, largest=False).indices  # (P, k) the lowest directions now
-            if W is not None:  # keep the half of the last working set that is tightest at the last solution
+            if W is not None and BW is not None and loW is not None:  # keep the half of the last working set that is tightest at the last solution
                 keep = torch.gather(W, 1, (torch.einsum("pt,pkt->pk", y, BW) - loW).topk(
                     k // 2, dim=1, largest=False).indices)
                 low = torch.cat([keep, low[:, : k - k // 2]], dim=1)
