@@ -130,6 +130,18 @@ def test_view_cli_and_size_limit(tmp_path, capsys):
         write_viewer(tmp_path / "big.html", res, max_bytes=1000)
 
 
+def test_view_out_defaults_to_the_result_name_beside_it(tmp_path):
+    folder = tmp_path / "cat_ps"
+    folder.mkdir()
+    _result(24).write(folder / "result.npz")
+    assert cli.main(["view", str(folder), "--quiet"]) == 0
+    assert (tmp_path / "cat_ps.html").is_file() and not list(folder.glob("*.html"))
+    assert cli.main(["view", str(folder / "result.npz"), "--quiet", "--overwrite"]) == 0
+    other = tmp_path / "model.npz"
+    _result(24).write(other)
+    assert cli.main(["view", str(other), "--quiet"]) == 0 and (tmp_path / "model.html").is_file()
+
+
 def test_diligent_size_file_is_under_30_mb(tmp_path):
     """A 612 x 512 result (DiLiGenT size), 40 % of it masked, order 3: the file stays below 30 MiB."""
     H, W = 512, 612

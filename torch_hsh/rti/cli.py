@@ -322,15 +322,28 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
 # --------------------------------------------------------------------------- #
 def _view_arguments(v) -> None:
     _add_result(v)
-    v.add_argument("--out", required=True, help="output .html file (refused if it exists unless --overwrite)")
+    v.add_argument("--out", default=None,
+                   help="output .html file (default: RESULT's name + '.html', beside it; refused if it exists "
+                        "unless --overwrite)")
     _add_exposure(v)
+
+
+def _default_view_out(result: str) -> str:
+    """``RESULT.html`` beside a result folder (or beside the folder of its ``result.npz``); ``NAME.html`` beside
+    any other ``.npz``."""
+    p = Path(os.path.abspath(result))
+    if p.is_dir() or p.name == "result.npz":
+        folder = p if p.is_dir() else p.parent
+        return str(folder.parent / f"{folder.name}.html")
+    return str(p.with_suffix(".html"))
 
 
 def _run_view(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     from .viewer import write_viewer
 
     say = _say(args)
-    out = _out_file(ap, args.out, (".html", ".htm"), args.overwrite)
+    out = _out_file(ap, args.out if args.out is not None else _default_view_out(args.result), (".html", ".htm"),
+                    args.overwrite)
     res = _load_result(args, ap)
     exposure = write_viewer(out, res, exposure=args.exposure, title=f"torch_hsh: {Path(args.result).name}",
                             overwrite=args.overwrite)
