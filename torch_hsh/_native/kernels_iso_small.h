@@ -3,6 +3,9 @@
  * The isotropic Helmholtz basis of two direction sets at orders 1, 2, 3 as straight-line code:
  * the general iso_dirs kernels of kernels_impl.h with the tables (torch_hsh.kernel._native_iso_spec)
  * written in as constants, one loop over the rows of a block doing all of a row in registers.
+ * An order P is a few macros: its polar columns (ISO<P>_POLAR, for either direction), the gradients of its
+ * azimuthal factors (ISO<P>_GG_*) and its table of outputs (ISO<P>_OUTPUTS); its kernels iso<P>_fwd and
+ * iso<P>_bwd are ISO_SMALL_FWD(P, K) and ISO_SMALL_BWD(P, K) of them, the backward keeping what the forward drops.
  * Included by kernels_impl.h (T, SUF, SQRT, TMAX, BS, IVDEP, store_rows, load_rows defined there).
  */
 
@@ -62,419 +65,189 @@
         go[0] = io * (gxo - xo * pdo); go[1] = io * (gyo - yo * pdo); go[2] = io * (gzo_ - zo * pdo);    \
     }
 
+/* The parts of a row that only the backward needs stand in DZ(...) or DG(...): the backward passes
+ * ISO_SMALL_KEEP, the forward ISO_SMALL_DROP. */
+#define ISO_SMALL_KEEP(x) x
+#define ISO_SMALL_DROP(x)
+
+/* The loop over the blocks of BS rows in [r0, r1) (wib, wob: the block's directions), left open. */
+#define ISO_SMALL_BLOCKS                                                                                \
+    for (int64_t b0 = r0; b0 < r1; b0 += BS) {                                                          \
+        const int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);                                           \
+        const T *wib = wi + 3 * b0, *wob = wo + 3 * b0;
+
+/* The loop over the m rows j of a block, left open. */
+#define ISO_SMALL_ROWS                                                                                  \
+    IVDEP                                                                                               \
+    for (int j = 0; j < m; ++j) {
+
+/* The forward of order P with K outputs: output k of row j goes to tmp[k][j], then a block at
+ * a time to out. */
+#define ISO_SMALL_FWD(P, K)                                                                             \
+    static int SUF(iso##P##_fwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T *out)      \
+    {                                                                                                   \
+        T tmp[K][BS];                                                                                   \
+        int bad = 0;                                                                                    \
+        ISO_SMALL_BLOCKS                                                                                \
+            ISO_SMALL_ROWS                                                                              \
+                ISO_SMALL_GEOM_FWD                                                                      \
+                const T a1 = sio * a, q1 = sio2 * rho;                                                  \
+                (void)q1;                                                                               \
+                ISO##P##_POLAR(Ri, ti, Di, ISO_SMALL_DROP) ISO##P##_POLAR(Ro, to, Do, ISO_SMALL_DROP)   \
+                ISO_SMALL_AZIM##P(ISO_SMALL_DROP)                                                       \
+                ISO##P##_OUTPUTS(ISO_SMALL_OUT)                                                         \
+            }                                                                                           \
+            SUF(store_rows)(m, K, tmp, out + b0 * K);                                                   \
+        }                                                                                               \
+        return bad ? 2 : 0;                                                                             \
+    }
+
+/* The backward of order P with K outputs: a row's gradients of G (gG1 .. gGP), z_i and z_o
+ * (gzi, gzo), then of a1 and q1 (ga1, gr1), through ISO_SMALL_CHAIN to those of the two directions. */
+#define ISO_SMALL_BWD(P, K)                                                                             \
+    static int SUF(iso##P##_bwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T eps,       \
+                                 const T *gout, int64_t gs0, int64_t gs1, T *gwi, T *gwo)               \
+    {                                                                                                   \
+        T g[K][BS];                                                                                     \
+        int bad = 0; /* set by ISO_SMALL_GEOM; the forward reports non-finite input */                  \
+        ISO_SMALL_BLOCKS                                                                                \
+            SUF(load_rows)(m, K, gout + b0 * gs0, gs0, gs1, g);                                         \
+            ISO_SMALL_ROWS                                                                              \
+                ISO_SMALL_GEOM                                                                          \
+                ISO_SMALL_GEOM_BWD                                                                      \
+                const T a1 = sio * a, q1 = sio * sio * rho;                                             \
+                (void)q1;                                                                               \
+                ISO##P##_POLAR(Ri, ti, Di, ISO_SMALL_KEEP) ISO##P##_POLAR(Ro, to, Do, ISO_SMALL_KEEP)   \
+                ISO_SMALL_AZIM##P(ISO_SMALL_KEEP)                                                       \
+                ISO##P##_GG_ZERO                                                                        \
+                T gzi = 0, gzo = 0;                                                                     \
+                ISO##P##_OUTPUTS(ISO_SMALL_GRAD)                                                        \
+                ISO##P##_GG_CHAIN                                                                       \
+                ISO_SMALL_CHAIN                                                                         \
+            }                                                                                           \
+        }                                                                                               \
+        (void)bad;                                                                                      \
+        return 0;                                                                                       \
+    }
+
+/* Output k of a row is c (Ri_a Ro_b + Ri_b Ro_a) G_q (ISO_SMALL_SYM: the bracket); the tables
+ * ISO<P>_OUTPUTS hold X(k, c, a, b, q, kind) for each. The forward stores it (ISO_SMALL_OUT); the
+ * backward (ISO_SMALL_GRAD) adds, with w = c g[k][j], its terms to the gradient gG##q of G_q (kinds G,
+ * GZ1, GZ2: q >= 1) and to those of z_i and z_o, gzi and gzo, through column a alone (Z1, GZ1) or both
+ * columns (Z2, GZ2): the column of the lowest degree, q, is a constant. Kind C, a constant, has none. */
+#define ISO_SMALL_SYM(a, b) (Ri##a * Ro##b + Ri##b * Ro##a)
+#define ISO_SMALL_OUT(k, c, a, b, q, kind) tmp[k][j] = (T)c * ISO_SMALL_SYM(a, b) * G##q;
+#define ISO_SMALL_GRAD(k, c, a, b, q, kind) ISO_SMALL_GRAD_##kind(k, c, a, b, q)
+#define ISO_SMALL_W(k, c) const T w = (T)c * g[k][j];
+#define ISO_SMALL_GG(a, b, q) gG##q += w * ISO_SMALL_SYM(a, b);
+#define ISO_SMALL_Z1(a, b, q)                                                                           \
+    const T wg = w * G##q;                                                                              \
+    gzi += wg * (Di##a * Ro##b);                                                                        \
+    gzo += wg * (Ri##b * Do##a);
+#define ISO_SMALL_Z2(a, b, q)                                                                           \
+    const T wg = w * G##q;                                                                              \
+    gzi += wg * (Di##a * Ro##b + Di##b * Ro##a);                                                        \
+    gzo += wg * (Ri##a * Do##b + Ri##b * Do##a);
+#define ISO_SMALL_GRAD_C(k, c, a, b, q)
+#define ISO_SMALL_GRAD_G(k, c, a, b, q) { ISO_SMALL_W(k, c) ISO_SMALL_GG(a, b, q) }
+#define ISO_SMALL_GRAD_Z1(k, c, a, b, q) { ISO_SMALL_W(k, c) ISO_SMALL_Z1(a, b, q) }
+#define ISO_SMALL_GRAD_Z2(k, c, a, b, q) { ISO_SMALL_W(k, c) ISO_SMALL_Z2(a, b, q) }
+#define ISO_SMALL_GRAD_GZ1(k, c, a, b, q) { ISO_SMALL_W(k, c) ISO_SMALL_GG(a, b, q) ISO_SMALL_Z1(a, b, q) }
+#define ISO_SMALL_GRAD_GZ2(k, c, a, b, q) { ISO_SMALL_W(k, c) ISO_SMALL_GG(a, b, q) ISO_SMALL_Z2(a, b, q) }
+
+/* The azimuthal factors G0 .. Gq of a row, by their recurrence in a1 and q1, and in DG(...) dG/da1 (Ga)
+ * and dG/dq1 (Gr). */
+#define ISO_SMALL_AZIM1(DG) const T G0 = v; const T G1 = a1 * v; DG(const T Ga1 = v;)
+#define ISO_SMALL_AZIM2(DG)                                                                             \
+    ISO_SMALL_AZIM1(DG)                                                                                 \
+    const T G2 = 2 * a1 * G1 - q1 * G0;                                                                 \
+    DG(const T Ga2 = 2 * G1 + 2 * a1 * Ga1; const T Gr2 = -G0;)
+#define ISO_SMALL_AZIM3(DG)                                                                             \
+    ISO_SMALL_AZIM2(DG)                                                                                 \
+    const T G3 = 2 * a1 * G2 - q1 * G1;                                                                 \
+    DG(const T Ga3 = 2 * G2 + 2 * a1 * Ga2 - q1 * Ga1; const T Gr3 = 2 * a1 * Gr2 - G1;)
 
 /* ---- P = 1: L = 3 polar columns, K = 4 outputs ---- */
-static int SUF(iso1_fwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T *out)
-{
-    T tmp[4][BS];
-    int bad = 0;
-    for (int64_t b0 = r0; b0 < r1; b0 += BS) {
-        const int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        const T *wib = wi + 3 * b0, *wob = wo + 3 * b0;
-        IVDEP
-        for (int j = 0; j < m; ++j) {
-            ISO_SMALL_GEOM_FWD
-            const T a1 = sio * a, q1 = sio2 * rho;
-            (void)q1;
-            const T Ri0 = (T)0x1.9884533d43651p-2;
-            const T Ri1 = (T)0x1.f454378577498p-1;
-            const T Ri2 = (T)0x1.bb67ae8584caap+0 * ti * Ri0;
-            const T Ro0 = (T)0x1.9884533d43651p-2;
-            const T Ro1 = (T)0x1.f454378577498p-1;
-            const T Ro2 = (T)0x1.bb67ae8584caap+0 * to * Ro0;
-            const T G0 = v;
-            const T G1 = a1 * v;
-            tmp[0][j] = (T)0x1.0000000000000p-1 * (Ri0 * Ro0 + Ri0 * Ro0) * G0;
-            tmp[1][j] = (T)0x1.6a09e667f3bccp-1 * (Ri2 * Ro0 + Ri0 * Ro2) * G0;
-            tmp[2][j] = (T)0x1.0000000000000p-1 * (Ri2 * Ro2 + Ri2 * Ro2) * G0;
-            tmp[3][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri1 * Ro1 + Ri1 * Ro1) * G1;
-        }
-        SUF(store_rows)(m, 4, tmp, out + b0 * 4);
-    }
-    return bad ? 2 : 0;
-}
+/* P = 1: the 3 polar columns R##0 .. R##2 of one direction (R, t, D: Ri, ti, Di or Ro, to, Do)
+ * and in DZ(...) the derivatives D##c of the non-constant ones with respect to z. */
+#define ISO1_POLAR(R, t, D, DZ)                                                                         \
+    const T R##0 = (T)0x1.9884533d43651p-2, R##1 = (T)0x1.f454378577498p-1;                             \
+    const T R##2 = (T)0x1.bb67ae8584caap+0 * t * R##0;                                                  \
+    DZ(const T D##2 = (T)0x1.bb67ae8584caap+0 * (2 * R##0);)
 
-static int SUF(iso1_bwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T eps, const T *gout,
-                            int64_t gs0, int64_t gs1, T *gwi, T *gwo)
-{
-    T g[4][BS];
-    int bad = 0; /* set by ISO_SMALL_GEOM; the forward reports non-finite input */
-    for (int64_t b0 = r0; b0 < r1; b0 += BS) {
-        const int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        const T *wib = wi + 3 * b0, *wob = wo + 3 * b0;
-        SUF(load_rows)(m, 4, gout + b0 * gs0, gs0, gs1, g);
-        IVDEP
-        for (int j = 0; j < m; ++j) {
-            ISO_SMALL_GEOM
-            ISO_SMALL_GEOM_BWD
-            const T a1 = sio * a, q1 = sio * sio * rho;
-            (void)q1;
-            const T Ri0 = (T)0x1.9884533d43651p-2;
-            const T Ri1 = (T)0x1.f454378577498p-1;
-            const T Ri2 = (T)0x1.bb67ae8584caap+0 * ti * Ri0;
-            const T Di2 = (T)0x1.bb67ae8584caap+0 * (2 * Ri0);
-            const T Ro0 = (T)0x1.9884533d43651p-2;
-            const T Ro1 = (T)0x1.f454378577498p-1;
-            const T Ro2 = (T)0x1.bb67ae8584caap+0 * to * Ro0;
-            const T Do2 = (T)0x1.bb67ae8584caap+0 * (2 * Ro0);
-            const T G0 = v;
-            const T G1 = a1 * v, Ga1 = v;
-            T gG1 = 0;
-            T gzi = 0, gzo = 0;
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[1][j];
-              const T wg = w * G0;
-              gzi += wg * (Di2 * Ro0);
-              gzo += wg * (Ri0 * Do2); }
-            { const T w = (T)0x1.0000000000000p-1 * g[2][j];
-              const T wg = w * G0;
-              gzi += wg * (Di2 * Ro2 + Di2 * Ro2);
-              gzo += wg * (Ri2 * Do2 + Ri2 * Do2); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[3][j];
-              gG1 += w * (Ri1 * Ro1 + Ri1 * Ro1); }
-            const T ga1 = gG1 * Ga1, gr1 = (T)0;
-            (void)G1;
-            ISO_SMALL_CHAIN
-        }
-    }
-    (void)bad;
-    return 0;
-}
+/* P = 1: the gradients gG of the azimuthal factors, zeroed, and from them those of a1 and q1. */
+#define ISO1_GG_ZERO T gG1 = 0;
+#define ISO1_GG_CHAIN const T ga1 = gG1 * Ga1, gr1 = (T)0; (void)G1;
+
+/* P = 1: the 4 outputs, X(k, c, a, b, q, kind) each. */
+#define ISO1_OUTPUTS(X)                                                                                 \
+    X(0, 0x1p-1, 0, 0, 0, C)                                                                            \
+    X(1, 0x1.6a09e667f3bccp-1, 2, 0, 0, Z1)                                                             \
+    X(2, 0x1p-1, 2, 2, 0, Z2)                                                                           \
+    X(3, 0x1.6a09e667f3bcdp-1, 1, 1, 1, G)
 
 /* ---- P = 2: L = 6 polar columns, K = 10 outputs ---- */
-static int SUF(iso2_fwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T *out)
-{
-    T tmp[10][BS];
-    int bad = 0;
-    for (int64_t b0 = r0; b0 < r1; b0 += BS) {
-        const int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        const T *wib = wi + 3 * b0, *wob = wo + 3 * b0;
-        IVDEP
-        for (int j = 0; j < m; ++j) {
-            ISO_SMALL_GEOM_FWD
-            const T a1 = sio * a, q1 = sio2 * rho;
-            (void)q1;
-            const T Ri0 = (T)0x1.9884533d43651p-2;
-            const T Ri1 = (T)0x1.f454378577498p-1;
-            const T Ri2 = (T)0x1.17b14102b0693p+1;
-            const T Ri3 = (T)0x1.bb67ae8584caap+0 * ti * Ri0;
-            const T Ri4 = (T)0x1.1e3779b97f4a8p+1 * ti * Ri1;
-            const T Ri5 = (T)0x1.efbdeb14f4edap+0 * ti * Ri3 - (T)0x1.1e3779b97f4a8p+0 * Ri0;
-            const T Ro0 = (T)0x1.9884533d43651p-2;
-            const T Ro1 = (T)0x1.f454378577498p-1;
-            const T Ro2 = (T)0x1.17b14102b0693p+1;
-            const T Ro3 = (T)0x1.bb67ae8584caap+0 * to * Ro0;
-            const T Ro4 = (T)0x1.1e3779b97f4a8p+1 * to * Ro1;
-            const T Ro5 = (T)0x1.efbdeb14f4edap+0 * to * Ro3 - (T)0x1.1e3779b97f4a8p+0 * Ro0;
-            const T G0 = v;
-            const T G1 = a1 * v;
-            const T G2 = 2 * a1 * G1 - q1 * G0;
-            tmp[0][j] = (T)0x1.0000000000000p-1 * (Ri0 * Ro0 + Ri0 * Ro0) * G0;
-            tmp[1][j] = (T)0x1.6a09e667f3bccp-1 * (Ri3 * Ro0 + Ri0 * Ro3) * G0;
-            tmp[2][j] = (T)0x1.0000000000000p-1 * (Ri3 * Ro3 + Ri3 * Ro3) * G0;
-            tmp[3][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri1 * Ro1 + Ri1 * Ro1) * G1;
-            tmp[4][j] = (T)0x1.6a09e667f3bccp-1 * (Ri5 * Ro0 + Ri0 * Ro5) * G0;
-            tmp[5][j] = (T)0x1.6a09e667f3bccp-1 * (Ri5 * Ro3 + Ri3 * Ro5) * G0;
-            tmp[6][j] = (T)0x1.0000000000000p+0 * (Ri4 * Ro1 + Ri1 * Ro4) * G1;
-            tmp[7][j] = (T)0x1.0000000000000p-1 * (Ri5 * Ro5 + Ri5 * Ro5) * G0;
-            tmp[8][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri4 * Ro4 + Ri4 * Ro4) * G1;
-            tmp[9][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri2 * Ro2 + Ri2 * Ro2) * G2;
-        }
-        SUF(store_rows)(m, 10, tmp, out + b0 * 10);
-    }
-    return bad ? 2 : 0;
-}
+/* P = 2: the 6 polar columns R##0 .. R##5 of one direction (R, t, D: Ri, ti, Di or Ro, to, Do)
+ * and in DZ(...) the derivatives D##c of the non-constant ones with respect to z. */
+#define ISO2_POLAR(R, t, D, DZ)                                                                         \
+    const T R##0 = (T)0x1.9884533d43651p-2, R##1 = (T)0x1.f454378577498p-1;                             \
+    const T R##2 = (T)0x1.17b14102b0693p+1;                                                             \
+    const T R##3 = (T)0x1.bb67ae8584caap+0 * t * R##0;                                                  \
+    DZ(const T D##3 = (T)0x1.bb67ae8584caap+0 * (2 * R##0);)                                            \
+    const T R##4 = (T)0x1.1e3779b97f4a8p+1 * t * R##1;                                                  \
+    DZ(const T D##4 = (T)0x1.1e3779b97f4a8p+1 * (2 * R##1);)                                            \
+    const T R##5 = (T)0x1.efbdeb14f4edap+0 * t * R##3 - (T)0x1.1e3779b97f4a8p+0 * R##0;                 \
+    DZ(const T D##5 = (T)0x1.efbdeb14f4edap+0 * (2 * R##3 + t * D##3);)
 
-static int SUF(iso2_bwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T eps, const T *gout,
-                            int64_t gs0, int64_t gs1, T *gwi, T *gwo)
-{
-    T g[10][BS];
-    int bad = 0; /* set by ISO_SMALL_GEOM; the forward reports non-finite input */
-    for (int64_t b0 = r0; b0 < r1; b0 += BS) {
-        const int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        const T *wib = wi + 3 * b0, *wob = wo + 3 * b0;
-        SUF(load_rows)(m, 10, gout + b0 * gs0, gs0, gs1, g);
-        IVDEP
-        for (int j = 0; j < m; ++j) {
-            ISO_SMALL_GEOM
-            ISO_SMALL_GEOM_BWD
-            const T a1 = sio * a, q1 = sio * sio * rho;
-            (void)q1;
-            const T Ri0 = (T)0x1.9884533d43651p-2;
-            const T Ri1 = (T)0x1.f454378577498p-1;
-            const T Ri2 = (T)0x1.17b14102b0693p+1;
-            const T Ri3 = (T)0x1.bb67ae8584caap+0 * ti * Ri0;
-            const T Di3 = (T)0x1.bb67ae8584caap+0 * (2 * Ri0);
-            const T Ri4 = (T)0x1.1e3779b97f4a8p+1 * ti * Ri1;
-            const T Di4 = (T)0x1.1e3779b97f4a8p+1 * (2 * Ri1);
-            const T Ri5 = (T)0x1.efbdeb14f4edap+0 * ti * Ri3 - (T)0x1.1e3779b97f4a8p+0 * Ri0;
-            const T Di5 = (T)0x1.efbdeb14f4edap+0 * (2 * Ri3 + ti * Di3);
-            const T Ro0 = (T)0x1.9884533d43651p-2;
-            const T Ro1 = (T)0x1.f454378577498p-1;
-            const T Ro2 = (T)0x1.17b14102b0693p+1;
-            const T Ro3 = (T)0x1.bb67ae8584caap+0 * to * Ro0;
-            const T Do3 = (T)0x1.bb67ae8584caap+0 * (2 * Ro0);
-            const T Ro4 = (T)0x1.1e3779b97f4a8p+1 * to * Ro1;
-            const T Do4 = (T)0x1.1e3779b97f4a8p+1 * (2 * Ro1);
-            const T Ro5 = (T)0x1.efbdeb14f4edap+0 * to * Ro3 - (T)0x1.1e3779b97f4a8p+0 * Ro0;
-            const T Do5 = (T)0x1.efbdeb14f4edap+0 * (2 * Ro3 + to * Do3);
-            const T G0 = v;
-            const T G1 = a1 * v, Ga1 = v;
-            const T G2 = 2 * a1 * G1 - q1 * G0;
-            const T Ga2 = 2 * G1 + 2 * a1 * Ga1;
-            const T Gr2 = -G0;
-            T gG1 = 0;
-            T gG2 = 0;
-            T gzi = 0, gzo = 0;
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[1][j];
-              const T wg = w * G0;
-              gzi += wg * (Di3 * Ro0);
-              gzo += wg * (Ri0 * Do3); }
-            { const T w = (T)0x1.0000000000000p-1 * g[2][j];
-              const T wg = w * G0;
-              gzi += wg * (Di3 * Ro3 + Di3 * Ro3);
-              gzo += wg * (Ri3 * Do3 + Ri3 * Do3); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[3][j];
-              gG1 += w * (Ri1 * Ro1 + Ri1 * Ro1); }
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[4][j];
-              const T wg = w * G0;
-              gzi += wg * (Di5 * Ro0);
-              gzo += wg * (Ri0 * Do5); }
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[5][j];
-              const T wg = w * G0;
-              gzi += wg * (Di5 * Ro3 + Di3 * Ro5);
-              gzo += wg * (Ri5 * Do3 + Ri3 * Do5); }
-            { const T w = (T)0x1.0000000000000p+0 * g[6][j];
-              gG1 += w * (Ri4 * Ro1 + Ri1 * Ro4);
-              const T wg = w * G1;
-              gzi += wg * (Di4 * Ro1);
-              gzo += wg * (Ri1 * Do4); }
-            { const T w = (T)0x1.0000000000000p-1 * g[7][j];
-              const T wg = w * G0;
-              gzi += wg * (Di5 * Ro5 + Di5 * Ro5);
-              gzo += wg * (Ri5 * Do5 + Ri5 * Do5); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[8][j];
-              gG1 += w * (Ri4 * Ro4 + Ri4 * Ro4);
-              const T wg = w * G1;
-              gzi += wg * (Di4 * Ro4 + Di4 * Ro4);
-              gzo += wg * (Ri4 * Do4 + Ri4 * Do4); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[9][j];
-              gG2 += w * (Ri2 * Ro2 + Ri2 * Ro2); }
-            const T ga1 = gG1 * Ga1 + gG2 * Ga2, gr1 = gG2 * Gr2;
-            (void)G2;
-            ISO_SMALL_CHAIN
-        }
-    }
-    (void)bad;
-    return 0;
-}
+/* P = 2: the gradients gG of the azimuthal factors, zeroed, and from them those of a1 and q1. */
+#define ISO2_GG_ZERO T gG1 = 0; T gG2 = 0;
+#define ISO2_GG_CHAIN const T ga1 = gG1 * Ga1 + gG2 * Ga2, gr1 = gG2 * Gr2; (void)G2;
+
+/* P = 2: the 10 outputs, X(k, c, a, b, q, kind) each. */
+#define ISO2_OUTPUTS(X)                                                                                 \
+    X(0, 0x1p-1, 0, 0, 0, C) X(1, 0x1.6a09e667f3bccp-1, 3, 0, 0, Z1)                                    \
+    X(2, 0x1p-1, 3, 3, 0, Z2) X(3, 0x1.6a09e667f3bcdp-1, 1, 1, 1, G)                                    \
+    X(4, 0x1.6a09e667f3bccp-1, 5, 0, 0, Z1) X(5, 0x1.6a09e667f3bccp-1, 5, 3, 0, Z2)                     \
+    X(6, 0x1p+0, 4, 1, 1, GZ1) X(7, 0x1p-1, 5, 5, 0, Z2)                                                \
+    X(8, 0x1.6a09e667f3bcdp-1, 4, 4, 1, GZ2) X(9, 0x1.6a09e667f3bcdp-1, 2, 2, 2, G)
 
 /* ---- P = 3: L = 10 polar columns, K = 20 outputs ---- */
-static int SUF(iso3_fwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T *out)
-{
-    T tmp[20][BS];
-    int bad = 0;
-    for (int64_t b0 = r0; b0 < r1; b0 += BS) {
-        const int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        const T *wib = wi + 3 * b0, *wob = wo + 3 * b0;
-        IVDEP
-        for (int j = 0; j < m; ++j) {
-            ISO_SMALL_GEOM_FWD
-            const T a1 = sio * a, q1 = sio2 * rho;
-            (void)q1;
-            const T Ri0 = (T)0x1.9884533d43651p-2;
-            const T Ri1 = (T)0x1.f454378577498p-1;
-            const T Ri2 = (T)0x1.17b14102b0693p+1;
-            const T Ri3 = (T)0x1.2e1a3183e613cp+2;
-            const T Ri4 = (T)0x1.bb67ae8584caap+0 * ti * Ri0;
-            const T Ri5 = (T)0x1.1e3779b97f4a8p+1 * ti * Ri1;
-            const T Ri6 = (T)0x1.52a7fa9d2f8eap+1 * ti * Ri2;
-            const T Ri7 = (T)0x1.efbdeb14f4edap+0 * ti * Ri4 - (T)0x1.1e3779b97f4a8p+0 * Ri0;
-            const T Ri8 = (T)0x1.0bbb307acafdbp+1 * ti * Ri5 - (T)0x1.deeea11683f49p-1 * Ri1;
-            const T Ri9 = (T)0x1.f8d6bc21a583cp+0 * ti * Ri7 - (T)0x1.04b298812c5ccp+0 * Ri4;
-            const T Ro0 = (T)0x1.9884533d43651p-2;
-            const T Ro1 = (T)0x1.f454378577498p-1;
-            const T Ro2 = (T)0x1.17b14102b0693p+1;
-            const T Ro3 = (T)0x1.2e1a3183e613cp+2;
-            const T Ro4 = (T)0x1.bb67ae8584caap+0 * to * Ro0;
-            const T Ro5 = (T)0x1.1e3779b97f4a8p+1 * to * Ro1;
-            const T Ro6 = (T)0x1.52a7fa9d2f8eap+1 * to * Ro2;
-            const T Ro7 = (T)0x1.efbdeb14f4edap+0 * to * Ro4 - (T)0x1.1e3779b97f4a8p+0 * Ro0;
-            const T Ro8 = (T)0x1.0bbb307acafdbp+1 * to * Ro5 - (T)0x1.deeea11683f49p-1 * Ro1;
-            const T Ro9 = (T)0x1.f8d6bc21a583cp+0 * to * Ro7 - (T)0x1.04b298812c5ccp+0 * Ro4;
-            const T G0 = v;
-            const T G1 = a1 * v;
-            const T G2 = 2 * a1 * G1 - q1 * G0;
-            const T G3 = 2 * a1 * G2 - q1 * G1;
-            tmp[0][j] = (T)0x1.0000000000000p-1 * (Ri0 * Ro0 + Ri0 * Ro0) * G0;
-            tmp[1][j] = (T)0x1.6a09e667f3bccp-1 * (Ri4 * Ro0 + Ri0 * Ro4) * G0;
-            tmp[2][j] = (T)0x1.0000000000000p-1 * (Ri4 * Ro4 + Ri4 * Ro4) * G0;
-            tmp[3][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri1 * Ro1 + Ri1 * Ro1) * G1;
-            tmp[4][j] = (T)0x1.6a09e667f3bccp-1 * (Ri7 * Ro0 + Ri0 * Ro7) * G0;
-            tmp[5][j] = (T)0x1.6a09e667f3bccp-1 * (Ri7 * Ro4 + Ri4 * Ro7) * G0;
-            tmp[6][j] = (T)0x1.0000000000000p+0 * (Ri5 * Ro1 + Ri1 * Ro5) * G1;
-            tmp[7][j] = (T)0x1.0000000000000p-1 * (Ri7 * Ro7 + Ri7 * Ro7) * G0;
-            tmp[8][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri5 * Ro5 + Ri5 * Ro5) * G1;
-            tmp[9][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri2 * Ro2 + Ri2 * Ro2) * G2;
-            tmp[10][j] = (T)0x1.6a09e667f3bccp-1 * (Ri9 * Ro0 + Ri0 * Ro9) * G0;
-            tmp[11][j] = (T)0x1.6a09e667f3bccp-1 * (Ri9 * Ro4 + Ri4 * Ro9) * G0;
-            tmp[12][j] = (T)0x1.0000000000000p+0 * (Ri8 * Ro1 + Ri1 * Ro8) * G1;
-            tmp[13][j] = (T)0x1.6a09e667f3bccp-1 * (Ri9 * Ro7 + Ri7 * Ro9) * G0;
-            tmp[14][j] = (T)0x1.0000000000000p+0 * (Ri8 * Ro5 + Ri5 * Ro8) * G1;
-            tmp[15][j] = (T)0x1.0000000000000p+0 * (Ri6 * Ro2 + Ri2 * Ro6) * G2;
-            tmp[16][j] = (T)0x1.0000000000000p-1 * (Ri9 * Ro9 + Ri9 * Ro9) * G0;
-            tmp[17][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri8 * Ro8 + Ri8 * Ro8) * G1;
-            tmp[18][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri6 * Ro6 + Ri6 * Ro6) * G2;
-            tmp[19][j] = (T)0x1.6a09e667f3bcdp-1 * (Ri3 * Ro3 + Ri3 * Ro3) * G3;
-        }
-        SUF(store_rows)(m, 20, tmp, out + b0 * 20);
-    }
-    return bad ? 2 : 0;
-}
+/* P = 3: the 10 polar columns R##0 .. R##9 of one direction (R, t, D: Ri, ti, Di or Ro, to, Do)
+ * and in DZ(...) the derivatives D##c of the non-constant ones with respect to z. */
+#define ISO3_POLAR(R, t, D, DZ)                                                                          \
+    const T R##0 = (T)0x1.9884533d43651p-2, R##1 = (T)0x1.f454378577498p-1;                              \
+    const T R##2 = (T)0x1.17b14102b0693p+1, R##3 = (T)0x1.2e1a3183e613cp+2;                              \
+    const T R##4 = (T)0x1.bb67ae8584caap+0 * t * R##0;                                                   \
+    DZ(const T D##4 = (T)0x1.bb67ae8584caap+0 * (2 * R##0);)                                             \
+    const T R##5 = (T)0x1.1e3779b97f4a8p+1 * t * R##1;                                                   \
+    DZ(const T D##5 = (T)0x1.1e3779b97f4a8p+1 * (2 * R##1);)                                             \
+    const T R##6 = (T)0x1.52a7fa9d2f8eap+1 * t * R##2;                                                   \
+    DZ(const T D##6 = (T)0x1.52a7fa9d2f8eap+1 * (2 * R##2);)                                             \
+    const T R##7 = (T)0x1.efbdeb14f4edap+0 * t * R##4 - (T)0x1.1e3779b97f4a8p+0 * R##0;                  \
+    DZ(const T D##7 = (T)0x1.efbdeb14f4edap+0 * (2 * R##4 + t * D##4);)                                  \
+    const T R##8 = (T)0x1.0bbb307acafdbp+1 * t * R##5 - (T)0x1.deeea11683f49p-1 * R##1;                  \
+    DZ(const T D##8 = (T)0x1.0bbb307acafdbp+1 * (2 * R##5 + t * D##5);)                                  \
+    const T R##9 = (T)0x1.f8d6bc21a583cp+0 * t * R##7 - (T)0x1.04b298812c5ccp+0 * R##4;                  \
+    DZ(const T D##9 = (T)0x1.f8d6bc21a583cp+0 * (2 * R##7 + t * D##7) - (T)0x1.04b298812c5ccp+0 * D##4;)
 
-static int SUF(iso3_bwd)(int64_t r0, int64_t r1, const T *wi, const T *wo, T tiny, T eps, const T *gout,
-                            int64_t gs0, int64_t gs1, T *gwi, T *gwo)
-{
-    T g[20][BS];
-    int bad = 0; /* set by ISO_SMALL_GEOM; the forward reports non-finite input */
-    for (int64_t b0 = r0; b0 < r1; b0 += BS) {
-        const int m = (int)((r1 - b0) < BS ? (r1 - b0) : BS);
-        const T *wib = wi + 3 * b0, *wob = wo + 3 * b0;
-        SUF(load_rows)(m, 20, gout + b0 * gs0, gs0, gs1, g);
-        IVDEP
-        for (int j = 0; j < m; ++j) {
-            ISO_SMALL_GEOM
-            ISO_SMALL_GEOM_BWD
-            const T a1 = sio * a, q1 = sio * sio * rho;
-            (void)q1;
-            const T Ri0 = (T)0x1.9884533d43651p-2;
-            const T Ri1 = (T)0x1.f454378577498p-1;
-            const T Ri2 = (T)0x1.17b14102b0693p+1;
-            const T Ri3 = (T)0x1.2e1a3183e613cp+2;
-            const T Ri4 = (T)0x1.bb67ae8584caap+0 * ti * Ri0;
-            const T Di4 = (T)0x1.bb67ae8584caap+0 * (2 * Ri0);
-            const T Ri5 = (T)0x1.1e3779b97f4a8p+1 * ti * Ri1;
-            const T Di5 = (T)0x1.1e3779b97f4a8p+1 * (2 * Ri1);
-            const T Ri6 = (T)0x1.52a7fa9d2f8eap+1 * ti * Ri2;
-            const T Di6 = (T)0x1.52a7fa9d2f8eap+1 * (2 * Ri2);
-            const T Ri7 = (T)0x1.efbdeb14f4edap+0 * ti * Ri4 - (T)0x1.1e3779b97f4a8p+0 * Ri0;
-            const T Di7 = (T)0x1.efbdeb14f4edap+0 * (2 * Ri4 + ti * Di4);
-            const T Ri8 = (T)0x1.0bbb307acafdbp+1 * ti * Ri5 - (T)0x1.deeea11683f49p-1 * Ri1;
-            const T Di8 = (T)0x1.0bbb307acafdbp+1 * (2 * Ri5 + ti * Di5);
-            const T Ri9 = (T)0x1.f8d6bc21a583cp+0 * ti * Ri7 - (T)0x1.04b298812c5ccp+0 * Ri4;
-            const T Di9 = (T)0x1.f8d6bc21a583cp+0 * (2 * Ri7 + ti * Di7) - (T)0x1.04b298812c5ccp+0 * Di4;
-            const T Ro0 = (T)0x1.9884533d43651p-2;
-            const T Ro1 = (T)0x1.f454378577498p-1;
-            const T Ro2 = (T)0x1.17b14102b0693p+1;
-            const T Ro3 = (T)0x1.2e1a3183e613cp+2;
-            const T Ro4 = (T)0x1.bb67ae8584caap+0 * to * Ro0;
-            const T Do4 = (T)0x1.bb67ae8584caap+0 * (2 * Ro0);
-            const T Ro5 = (T)0x1.1e3779b97f4a8p+1 * to * Ro1;
-            const T Do5 = (T)0x1.1e3779b97f4a8p+1 * (2 * Ro1);
-            const T Ro6 = (T)0x1.52a7fa9d2f8eap+1 * to * Ro2;
-            const T Do6 = (T)0x1.52a7fa9d2f8eap+1 * (2 * Ro2);
-            const T Ro7 = (T)0x1.efbdeb14f4edap+0 * to * Ro4 - (T)0x1.1e3779b97f4a8p+0 * Ro0;
-            const T Do7 = (T)0x1.efbdeb14f4edap+0 * (2 * Ro4 + to * Do4);
-            const T Ro8 = (T)0x1.0bbb307acafdbp+1 * to * Ro5 - (T)0x1.deeea11683f49p-1 * Ro1;
-            const T Do8 = (T)0x1.0bbb307acafdbp+1 * (2 * Ro5 + to * Do5);
-            const T Ro9 = (T)0x1.f8d6bc21a583cp+0 * to * Ro7 - (T)0x1.04b298812c5ccp+0 * Ro4;
-            const T Do9 = (T)0x1.f8d6bc21a583cp+0 * (2 * Ro7 + to * Do7) - (T)0x1.04b298812c5ccp+0 * Do4;
-            const T G0 = v;
-            const T G1 = a1 * v, Ga1 = v;
-            const T G2 = 2 * a1 * G1 - q1 * G0;
-            const T Ga2 = 2 * G1 + 2 * a1 * Ga1;
-            const T Gr2 = -G0;
-            const T G3 = 2 * a1 * G2 - q1 * G1;
-            const T Ga3 = 2 * G2 + 2 * a1 * Ga2 - q1 * Ga1;
-            const T Gr3 = 2 * a1 * Gr2 - G1;
-            T gG1 = 0;
-            T gG2 = 0;
-            T gG3 = 0;
-            T gzi = 0, gzo = 0;
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[1][j];
-              const T wg = w * G0;
-              gzi += wg * (Di4 * Ro0);
-              gzo += wg * (Ri0 * Do4); }
-            { const T w = (T)0x1.0000000000000p-1 * g[2][j];
-              const T wg = w * G0;
-              gzi += wg * (Di4 * Ro4 + Di4 * Ro4);
-              gzo += wg * (Ri4 * Do4 + Ri4 * Do4); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[3][j];
-              gG1 += w * (Ri1 * Ro1 + Ri1 * Ro1); }
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[4][j];
-              const T wg = w * G0;
-              gzi += wg * (Di7 * Ro0);
-              gzo += wg * (Ri0 * Do7); }
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[5][j];
-              const T wg = w * G0;
-              gzi += wg * (Di7 * Ro4 + Di4 * Ro7);
-              gzo += wg * (Ri7 * Do4 + Ri4 * Do7); }
-            { const T w = (T)0x1.0000000000000p+0 * g[6][j];
-              gG1 += w * (Ri5 * Ro1 + Ri1 * Ro5);
-              const T wg = w * G1;
-              gzi += wg * (Di5 * Ro1);
-              gzo += wg * (Ri1 * Do5); }
-            { const T w = (T)0x1.0000000000000p-1 * g[7][j];
-              const T wg = w * G0;
-              gzi += wg * (Di7 * Ro7 + Di7 * Ro7);
-              gzo += wg * (Ri7 * Do7 + Ri7 * Do7); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[8][j];
-              gG1 += w * (Ri5 * Ro5 + Ri5 * Ro5);
-              const T wg = w * G1;
-              gzi += wg * (Di5 * Ro5 + Di5 * Ro5);
-              gzo += wg * (Ri5 * Do5 + Ri5 * Do5); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[9][j];
-              gG2 += w * (Ri2 * Ro2 + Ri2 * Ro2); }
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[10][j];
-              const T wg = w * G0;
-              gzi += wg * (Di9 * Ro0);
-              gzo += wg * (Ri0 * Do9); }
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[11][j];
-              const T wg = w * G0;
-              gzi += wg * (Di9 * Ro4 + Di4 * Ro9);
-              gzo += wg * (Ri9 * Do4 + Ri4 * Do9); }
-            { const T w = (T)0x1.0000000000000p+0 * g[12][j];
-              gG1 += w * (Ri8 * Ro1 + Ri1 * Ro8);
-              const T wg = w * G1;
-              gzi += wg * (Di8 * Ro1);
-              gzo += wg * (Ri1 * Do8); }
-            { const T w = (T)0x1.6a09e667f3bccp-1 * g[13][j];
-              const T wg = w * G0;
-              gzi += wg * (Di9 * Ro7 + Di7 * Ro9);
-              gzo += wg * (Ri9 * Do7 + Ri7 * Do9); }
-            { const T w = (T)0x1.0000000000000p+0 * g[14][j];
-              gG1 += w * (Ri8 * Ro5 + Ri5 * Ro8);
-              const T wg = w * G1;
-              gzi += wg * (Di8 * Ro5 + Di5 * Ro8);
-              gzo += wg * (Ri8 * Do5 + Ri5 * Do8); }
-            { const T w = (T)0x1.0000000000000p+0 * g[15][j];
-              gG2 += w * (Ri6 * Ro2 + Ri2 * Ro6);
-              const T wg = w * G2;
-              gzi += wg * (Di6 * Ro2);
-              gzo += wg * (Ri2 * Do6); }
-            { const T w = (T)0x1.0000000000000p-1 * g[16][j];
-              const T wg = w * G0;
-              gzi += wg * (Di9 * Ro9 + Di9 * Ro9);
-              gzo += wg * (Ri9 * Do9 + Ri9 * Do9); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[17][j];
-              gG1 += w * (Ri8 * Ro8 + Ri8 * Ro8);
-              const T wg = w * G1;
-              gzi += wg * (Di8 * Ro8 + Di8 * Ro8);
-              gzo += wg * (Ri8 * Do8 + Ri8 * Do8); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[18][j];
-              gG2 += w * (Ri6 * Ro6 + Ri6 * Ro6);
-              const T wg = w * G2;
-              gzi += wg * (Di6 * Ro6 + Di6 * Ro6);
-              gzo += wg * (Ri6 * Do6 + Ri6 * Do6); }
-            { const T w = (T)0x1.6a09e667f3bcdp-1 * g[19][j];
-              gG3 += w * (Ri3 * Ro3 + Ri3 * Ro3); }
-            const T ga1 = gG1 * Ga1 + gG2 * Ga2 + gG3 * Ga3, gr1 = gG2 * Gr2 + gG3 * Gr3;
-            (void)G3;
-            ISO_SMALL_CHAIN
-        }
-    }
-    (void)bad;
-    return 0;
-}
+/* P = 3: the gradients gG of the azimuthal factors, zeroed, and from them those of a1 and q1. */
+#define ISO3_GG_ZERO T gG1 = 0; T gG2 = 0; T gG3 = 0;
+#define ISO3_GG_CHAIN const T ga1 = gG1 * Ga1 + gG2 * Ga2 + gG3 * Ga3, gr1 = gG2 * Gr2 + gG3 * Gr3; (void)G3;
+
+/* P = 3: the 20 outputs, X(k, c, a, b, q, kind) each. */
+#define ISO3_OUTPUTS(X)                                                                                                      \
+    X(0, 0x1p-1, 0, 0, 0, C) X(1, 0x1.6a09e667f3bccp-1, 4, 0, 0, Z1) X(2, 0x1p-1, 4, 4, 0, Z2)                               \
+    X(3, 0x1.6a09e667f3bcdp-1, 1, 1, 1, G) X(4, 0x1.6a09e667f3bccp-1, 7, 0, 0, Z1) X(5, 0x1.6a09e667f3bccp-1, 7, 4, 0, Z2)   \
+    X(6, 0x1p+0, 5, 1, 1, GZ1) X(7, 0x1p-1, 7, 7, 0, Z2) X(8, 0x1.6a09e667f3bcdp-1, 5, 5, 1, GZ2)                            \
+    X(9, 0x1.6a09e667f3bcdp-1, 2, 2, 2, G) X(10, 0x1.6a09e667f3bccp-1, 9, 0, 0, Z1) X(11, 0x1.6a09e667f3bccp-1, 9, 4, 0, Z2) \
+    X(12, 0x1p+0, 8, 1, 1, GZ1) X(13, 0x1.6a09e667f3bccp-1, 9, 7, 0, Z2) X(14, 0x1p+0, 8, 5, 1, GZ2)                         \
+    X(15, 0x1p+0, 6, 2, 2, GZ1) X(16, 0x1p-1, 9, 9, 0, Z2) X(17, 0x1.6a09e667f3bcdp-1, 8, 8, 1, GZ2)                         \
+    X(18, 0x1.6a09e667f3bcdp-1, 6, 6, 2, GZ2) X(19, 0x1.6a09e667f3bcdp-1, 3, 3, 3, G)
+
+/* The kernels iso<P>_fwd and iso<P>_bwd of every order. */
+ISO_SMALL_FWD(1, 4) ISO_SMALL_BWD(1, 4)
+ISO_SMALL_FWD(2, 10) ISO_SMALL_BWD(2, 10)
+ISO_SMALL_FWD(3, 20) ISO_SMALL_BWD(3, 20)
 
 /* Dispatch on the order (-1: no generated kernel for it; the caller uses iso_dirs). */
 int SUF(iso_small_fwd)(int64_t r0, int64_t r1, int P, const T *wi, const T *wo, T tiny, T eps, T *out)
@@ -508,3 +281,37 @@ int SUF(iso_small_bwd)(int64_t r0, int64_t r1, int P, const T *wi, const T *wo, 
 #undef ISO_SMALL_GEOM_FWD
 #undef ISO_SMALL_GEOM_BWD
 #undef ISO_SMALL_CHAIN
+#undef ISO_SMALL_KEEP
+#undef ISO_SMALL_DROP
+#undef ISO_SMALL_BLOCKS
+#undef ISO_SMALL_ROWS
+#undef ISO_SMALL_FWD
+#undef ISO_SMALL_BWD
+#undef ISO_SMALL_SYM
+#undef ISO_SMALL_OUT
+#undef ISO_SMALL_GRAD
+#undef ISO_SMALL_W
+#undef ISO_SMALL_GG
+#undef ISO_SMALL_Z1
+#undef ISO_SMALL_Z2
+#undef ISO_SMALL_GRAD_C
+#undef ISO_SMALL_GRAD_G
+#undef ISO_SMALL_GRAD_Z1
+#undef ISO_SMALL_GRAD_Z2
+#undef ISO_SMALL_GRAD_GZ1
+#undef ISO_SMALL_GRAD_GZ2
+#undef ISO_SMALL_AZIM1
+#undef ISO_SMALL_AZIM2
+#undef ISO_SMALL_AZIM3
+#undef ISO1_POLAR
+#undef ISO1_GG_ZERO
+#undef ISO1_GG_CHAIN
+#undef ISO1_OUTPUTS
+#undef ISO2_POLAR
+#undef ISO2_GG_ZERO
+#undef ISO2_GG_CHAIN
+#undef ISO2_OUTPUTS
+#undef ISO3_POLAR
+#undef ISO3_GG_ZERO
+#undef ISO3_GG_CHAIN
+#undef ISO3_OUTPUTS
