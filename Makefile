@@ -98,7 +98,7 @@ mutate: $(MUTATION_STAMP)
 	$(PY) tools/mutate.py $(ARGS)
 
 # The kill campaign: every writer (ps, rti, view, fit, lights) killed 50 times with SIGTERM / SIGKILL at random
-# moments, each kill checked (old result intact or new one complete, no debris); about 20 min on 2 loaded cores.
+# moments, each kill checked (old result intact or new one complete, no debris); about 11 min on 2 loaded cores.
 # tests/test_kill.py runs a short form. ARGS="--kills 5 --writers ps fit" for a quick one.
 kill: $(BASE_STAMP)
 	OMP_NUM_THREADS=1 $(PY) tools/kill_campaign.py $(ARGS)

@@ -110,3 +110,18 @@ def test_kill_campaign_short_form():
     r = subprocess.run([sys.executable, str(ROOT / "tools" / "kill_campaign.py"), "--kills", "2", "--seed", "1"],
                        env=ENV, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0 and "10 kills: no result lost, no debris" in r.stdout, r.stdout + r.stderr
+
+
+def test_relight_folder_is_replaced_as_a_whole_but_never_over_a_users_file(tmp_path):
+    import numpy as np
+
+    from torch_hsh.rti.io import save_relight
+
+    c = np.random.default_rng(0).uniform(-1, 1, (6, 5, 3, 9))
+    folder = save_relight(tmp_path / "r", c)
+    save_relight(folder, c, layout="deepzoom", overwrite=True)  # an image-layout folder replaced as a whole
+    assert not (folder / "plane_0.jpg").exists() and (folder / "plane_0.dzi").exists()
+    (folder / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="notes.txt"):
+        save_relight(folder, c, overwrite=True)
+    assert (folder / "notes.txt").read_text() == "mine" and sorted(os.listdir(tmp_path)) == ["r"]

@@ -188,9 +188,10 @@ def campaign(writer: str, inputs: Dict[str, Path], out: Path, kills: int, rng: r
 
 
 def table(results: Dict[str, List[dict]]) -> str:
-    """The per-writer, per-signal table (Markdown)."""
-    lines = ["| writer | signal | kills | old intact | new complete | mixed | lost | debris after kill | "
-             "debris after next run | exit codes |", "|" + "---|" * 10]
+    """The per-writer, per-signal table (Markdown); "run stopped": the kill came before the run ended (exit status
+    not 0); "mixed": ``rti`` with one output old and the other new (each complete)."""
+    lines = ["| writer | signal | kills | run stopped | old intact | new complete | mixed | lost | debris after kill | "
+             "debris after next run | exit codes |", "|" + "---|" * 11]
     for writer, rows in results.items():
         for sig in ("SIGTERM", "SIGKILL"):
             rs = [r for r in rows if r["signal"] == sig]
@@ -198,7 +199,7 @@ def table(results: Dict[str, List[dict]]) -> str:
                 continue
             codes = sorted({r["rc"] for r in rs})
             lines.append(
-                f"| {writer} | {sig} | {len(rs)} | {sum(r['intact'] for r in rs)} | {sum(r['complete'] for r in rs)} | "
+                f"| {writer} | {sig} | {len(rs)} | {sum(r['rc'] != 0 for r in rs)} | {sum(r['intact'] for r in rs)} | {sum(r['complete'] for r in rs)} | "
                 f"{sum(not r['intact'] and not r['complete'] and not r['lost'] for r in rs)} | "
                 f"{sum(r['lost'] for r in rs)} | {sum(bool(r['after_kill']) for r in rs)} | "
                 f"{sum(bool(r['after_run']) for r in rs)} | {', '.join(map(str, codes))} |")

@@ -29,7 +29,12 @@ PathLike = Union[str, "os.PathLike[str]"]
 
 @contextmanager
 def signals_held() -> Iterator[None]:
-    """Hold SIGINT / SIGTERM (delivered when the block ends) where the platform allows."""
+    """Hold SIGINT / SIGTERM (delivered when the block ends) where the platform allows.
+
+    Example:
+        >>> with signals_held():
+        ...     pass  # a Ctrl-C here is raised after the block
+    """
     if not hasattr(signal, "pthread_sigmask"):
         yield
         return
@@ -57,7 +62,11 @@ def _alive(pid: int) -> bool:
 
 
 def remove(path: PathLike) -> None:
-    """Remove a temporary file or folder (if it exists), with SIGINT / SIGTERM held off."""
+    """Remove a temporary file or folder (if it exists), with SIGINT / SIGTERM held off.
+
+    Example:
+        >>> remove("results/.cat.123.0123abcd.partial")  # doctest: +SKIP
+    """
     p = Path(path)
     with signals_held():
         if p.is_dir() and not p.is_symlink():
@@ -95,7 +104,12 @@ def sweep(target: PathLike) -> None:
 def new_temp(target: PathLike, folder: bool = False, kind: str = "partial") -> Path:
     """Sweep ``target``'s stale temporaries, then create an empty temporary file (or folder) beside it, named
     ``.NAME.PID.HEX.partial``, with the mode ``open()`` / ``mkdir()`` give under the umask. Call it with
-    :func:`signals_held` and assign the result inside that block, so that no interrupt falls in between."""
+    :func:`signals_held` and assign the result inside that block, so that no interrupt falls in between.
+
+    Example:
+        >>> with signals_held():  # doctest: +SKIP
+        ...     tmp = new_temp("results/cat", folder=True)
+    """
     target = Path(os.path.abspath(target))
     sweep(target)
     path = target.parent / f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.{kind}"
@@ -132,7 +146,11 @@ def atomic_file(target: PathLike, mode: Optional[int] = None) -> Iterator[Path]:
 
 def replace_folder(staged: PathLike, target: PathLike) -> None:
     """Move the complete folder ``staged`` to ``target``: an existing ``target`` is renamed to ``.NAME.PID.HEX.old``
-    first and removed after (a kill between the two renames is undone by the next :func:`sweep`)."""
+    first and removed after (a kill between the two renames is undone by the next :func:`sweep`).
+
+    Example:
+        >>> replace_folder("results/.cat.123.0123abcd.partial", "results/cat")  # doctest: +SKIP
+    """
     target = Path(os.path.abspath(target))
     old = None
     with signals_held():

@@ -262,7 +262,7 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
     from .._atomic import sweep
-    from .io import relight_foreign_entries, save_relight, write_rti_hsh
+    from .io import _relight_foreign_entries, save_relight, write_rti_hsh
     from .fitting import project_to_rti
 
     say = _say(args)
@@ -283,7 +283,7 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         if opt == "--rti" and not parent.is_dir():  # before the projection (--relight creates its parents)
             ap.error(f"argument {opt}: the folder {parent} does not exist")
         _not_into_a_result(ap, opt, Path(val))
-        foreign = relight_foreign_entries(val) if opt == "--relight" else []
+        foreign = _relight_foreign_entries(val) if opt == "--relight" else []
         if foreign:
             ap.error(f"argument --relight: {val} holds files that are not a relight folder's "
                      f"({', '.join(foreign[:5])}); the folder is replaced as a whole: move them or choose another")

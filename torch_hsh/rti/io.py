@@ -769,7 +769,7 @@ def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwr
 _RELIGHT_ENTRY = re.compile(r"info\.json|plane_\d+(\.(jpg|png|dzi)|_files)")
 
 
-def relight_foreign_entries(path) -> List[str]:
+def _relight_foreign_entries(path) -> List[str]:
     """Entries of the folder ``path`` that :func:`save_relight` does not write (``[]`` if it is missing or empty)."""
     folder = Path(path)
     return sorted(n for n in os.listdir(folder) if not _RELIGHT_ENTRY.fullmatch(n)) if folder.is_dir() else []
@@ -784,7 +784,7 @@ def _relight_target(path, overwrite: bool) -> Path:
         raise ValueError(f"`path` {folder} exists and is not a folder")
     if folder.is_dir() and any(folder.iterdir()) and not overwrite:
         raise FileExistsError(f"{folder} is not empty; pass overwrite=True to replace it")
-    foreign = relight_foreign_entries(folder)
+    foreign = _relight_foreign_entries(folder)
     if foreign:
         raise FileExistsError(f"{folder} holds files that are not a relight folder's ({', '.join(foreign[:5])}); "
                               "they would be lost when it is replaced: move them or choose another folder")
