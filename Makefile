@@ -26,7 +26,7 @@ MUTATION_STAMP := $(VENV)/.torch_hsh_mutation_installed
 # Docstring examples to skip (none at present).
 DOCTEST_DESELECT ?=
 
-.PHONY: demo test test-fast test-lowest research-test doctest docs lint bench mutate env clean
+.PHONY: demo test test-fast test-lowest research-test doctest docs lint bench mutate kill env clean
 
 # torch first, then the package and the demo's one extra.
 $(BASE_STAMP): pyproject.toml setup.py
@@ -96,6 +96,12 @@ $(MUTATION_STAMP): $(STAMP) pyproject.toml
 # has 2397 mutants: about 5 h on 2 loaded cores (0.12 mutants/s); 440 of them took 48 min. ARGS="kernel" runs one module, ARGS="kernel --max-children 2".
 mutate: $(MUTATION_STAMP)
 	$(PY) tools/mutate.py $(ARGS)
+
+# The kill campaign: every writer (ps, rti, view, fit, lights) killed 50 times with SIGTERM / SIGKILL at random
+# moments, each kill checked (old result intact or new one complete, no debris); about 11 min on 2 loaded cores.
+# tests/test_kill.py runs a short form. ARGS="--kills 5 --writers ps fit" for a quick one.
+kill: $(BASE_STAMP)
+	OMP_NUM_THREADS=1 $(PY) tools/kill_campaign.py $(ARGS)
 
 # The basis benchmark (benchmarks/README.md lists the others, run the same way).
 bench: $(BENCH_STAMP)

@@ -20,7 +20,7 @@ PACKAGE = Path(torch_hsh.__file__).resolve().parent
 #: (layer name, module prefixes relative to torch_hsh), lowest layer first. docs/architecture.md has the
 #: same table with what each layer is for.
 LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
-    ("foundations", ("_version", "_checks", "_native", "frames", "quadrature")),
+    ("foundations", ("_version", "_checks", "_atomic", "_native", "frames", "quadrature")),
     ("kernel", ("kernel",)),
     ("models", ("bases", "brdf", "nn")),
     ("fitting and I/O", ("fitting", "spectra", "io")),

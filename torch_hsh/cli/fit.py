@@ -23,7 +23,8 @@ import numpy as np
 import torch
 
 from .common import PROG, InputError, _add_common, _float_in, _int_in
-from .result_folder import _jsonable, _umask
+from .._atomic import atomic_file, signals_held
+from .result_folder import _jsonable
 
 __all__ = ["add_fit_command"]
 
@@ -105,11 +106,12 @@ def _check_fit_out(ap: argparse.ArgumentParser, out: Path, overwrite: bool) -> P
         ap.error(f"argument --out: cannot create {out}: {anc} is not a folder")
     # os.access says yes to root everywhere (even /proc): create and remove a file to be sure
     try:
-        fd, probe = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=".probe", dir=anc)
+        with signals_held():  # no interrupt between the creation and the removal
+            fd, probe = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=".probe", dir=anc)
+            os.close(fd)
+            os.unlink(probe)
     except OSError as err:
         ap.error(f"argument --out: cannot write into {anc} ({err.strerror or err})")
-    os.close(fd)
-    os.unlink(probe)
     return out
 
 
@@ -178,20 +180,13 @@ def _write_fit_npz(out: Path, coefficients, arrays, summary) -> None:
     while not anc.exists():
         created.append(anc)
         anc = anc.parent
-    tmp = None
     try:
         for d in reversed(created):
             d.mkdir()
-        fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=".npz", dir=out.parent)
-        with os.fdopen(fd, "wb") as fh:
+        with atomic_file(out) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, coefficients=coefficients, metadata=np.array(json.dumps(_jsonable(summary), allow_nan=False)),
                      **arrays)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, out)
-        tmp = None
     except BaseException:
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)
         for d in created:  # innermost first; only folders this run created, and only if still empty
             try:
                 d.rmdir()

@@ -3,7 +3,7 @@
 A folder is *ours* only if it holds our ``manifest.json`` and nothing else than the files the
 manifest lists, unchanged since the run (same size and SHA-256). A new result is written into a
 temporary folder beside the target (:class:`_Staging`), the manifest last, and swapped into place
-with Ctrl-C held off for the two renames, so that the target holds either the previous complete
+with Ctrl-C and SIGTERM held off for the two renames (:mod:`torch_hsh._atomic`), so that the target holds either the previous complete
 result or the new one, never a mix. See the module docstring of :mod:`torch_hsh.cli` for the
 contract as the user sees it.
 
@@ -16,16 +16,14 @@ import hashlib
 import json
 import math
 import os
-import secrets
-import shutil
-import signal
 import tempfile
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 import numpy as np
 import torch
+
+from .._atomic import new_temp, remove, replace_folder, signals_held, sweep
 
 __all__ = ["MANIFEST", "MANIFEST_FORMAT", "MANIFEST_VERSION", "is_result_folder"]
 
@@ -88,6 +86,7 @@ def is_result_folder(folder) -> bool:
 def _check_out(ap: argparse.ArgumentParser, out: Path, overwrite: bool, option: str = "--out") -> Path:
     """Static checks of the output folder (nothing is created): exit 2 on a bad ``--out``."""
     out = Path(os.path.abspath(out))
+    sweep(out)  # what a killed run left (its old result put back if it was killed in the swap)
     cwd = Path(os.getcwd())
     if out == cwd or out in cwd.parents or out == Path.home() or out.parent == out:
         # never replaced as a whole, not even with --overwrite
@@ -114,24 +113,11 @@ def _check_out(ap: argparse.ArgumentParser, out: Path, overwrite: bool, option: 
         ap.error(f"argument {option}: cannot create {out}: {anc} is not writable")
     # os.access says yes to root everywhere (e.g. /proc): try it, with an empty folder removed at once
     try:
-        os.rmdir(tempfile.mkdtemp(prefix=".torch-hsh-probe.", dir=anc))
+        with signals_held():
+            os.rmdir(tempfile.mkdtemp(prefix=".torch-hsh-probe.", dir=anc))
     except OSError as err:
         ap.error(f"argument {option}: cannot create {out}: {anc} does not accept new folders ({err.strerror})")
     return out
-
-
-@contextmanager
-def _signals_held():
-    """Hold SIGINT/SIGTERM (delivered on exit) around a few renames, where the platform allows."""
-    sigs = {signal.SIGINT, signal.SIGTERM}
-    if not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class _Staging:
@@ -156,12 +142,11 @@ class _Staging:
             anc = anc.parent
         try:
             self.target.parent.mkdir(parents=True, exist_ok=True)
-            self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".partial",
-                                              dir=self.target.parent))
+            with signals_held():
+                self.path = new_temp(self.target, folder=True)
         except BaseException:
             self._remove_created()
             raise
-        os.chmod(self.path, 0o777 & ~_umask())  # mkdtemp makes 0700; a result folder is an ordinary folder
         return self
 
     def _remove_created(self) -> None:
@@ -173,8 +158,9 @@ class _Staging:
 
     def __exit__(self, *exc) -> None:
         if self.path is not None and self.path.exists():
-            shutil.rmtree(self.path, ignore_errors=True)
-            self._remove_created()
+            with signals_held():
+                remove(self.path)
+                self._remove_created()
 
     @property
     def folder(self) -> Path:
@@ -198,21 +184,10 @@ class _Staging:
         os.replace(tmp, self.folder / MANIFEST)
 
     def commit(self) -> None:
-        """Old result aside, new one in place (signals held), then the old one removed."""
-        old = None
-        with _signals_held():
-            if self.target.exists():
-                old = self.target.parent / f".{self.target.name}.old-{secrets.token_hex(4)}"
-                os.rename(self.target, old)
-            try:
-                os.rename(self.folder, self.target)
-            except BaseException:
-                if old is not None:
-                    os.rename(old, self.target)
-                raise
+        """Old result aside, new one in place, the old one removed (:func:`torch_hsh._atomic.replace_folder`)."""
+        with signals_held():
+            replace_folder(self.folder, self.target)
             self.path = None
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
 
 
 def _umask() -> int:

@@ -35,7 +35,6 @@ from __future__ import annotations
 import math
 import os
 import pathlib
-import tempfile
 from dataclasses import dataclass
 from typing import Callable, Optional, Sequence, Tuple, Union
 
@@ -43,6 +42,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .._atomic import atomic_file
 from .._checks import broadcast_shapes, check_dirs, check_same, check_shape
 
 __all__ = [
@@ -539,17 +539,9 @@ def write_merl(path: PathLike, table_or_brdf, overwrite: bool = False, scale=MER
     folder = p.parent if str(p.parent) else pathlib.Path(".")
     # mkstemp creates 0600; give the file the mode open() would (umask, or the replaced file's mode)
     mode = (p.stat().st_mode & 0o7777) if p.exists() else (0o666 & ~_current_umask())
-    fd, tmp = tempfile.mkstemp(prefix=".merl-", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(header.tobytes())
-            fh.write(np.ascontiguousarray(data).tobytes())
-        os.chmod(tmp, mode)
-        os.replace(tmp, p)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_file(folder / p.name, mode=mode) as tmp, open(tmp, "wb") as fh:
+        fh.write(header.tobytes())
+        fh.write(np.ascontiguousarray(data).tobytes())
     return p
 
 

@@ -127,10 +127,10 @@ class HSHResult:
         meta = {"format": _SAVE_FORMAT, "version": _SAVE_VERSION, "order": int(self.order), "channels": channels,
                 "runtime_s": float(self.runtime_s), "info": {k: _plain(v) for k, v in self.info.items()}}
         arrays["metadata"] = np.frombuffer(json.dumps(meta, allow_nan=False).encode("utf-8"), dtype=np.uint8)
-        tmp = p.with_name(p.name + ".partial")
-        with open(tmp, "wb") as f:
+        from .._atomic import atomic_file
+
+        with atomic_file(p) as tmp, open(tmp, "wb") as f:
             np.savez(f, **arrays)
-        tmp.replace(p)
 
     @classmethod
     def read(cls, path, device=None) -> "HSHResult":

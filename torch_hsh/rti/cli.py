@@ -261,7 +261,8 @@ def _rti_arguments(q) -> None:
 def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     import torch
 
-    from .io import save_relight, write_rti_hsh
+    from .._atomic import sweep
+    from .io import _relight_foreign_entries, save_relight, write_rti_hsh
     from .fitting import project_to_rti
 
     say = _say(args)
@@ -272,6 +273,8 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     if args.relight is not None and args.terms != 9:
         ap.error("argument --relight: relight/OpenLIME evaluate 9 HSH terms only; use --terms 9")
     for opt, val in (("--rti", args.rti), ("--relight", args.relight)):
+        if val is not None:
+            sweep(val)  # what a killed run left (a relight folder put back if it was killed in the swap)
         if val is not None and Path(val).exists() and not args.overwrite:
             ap.error(f"argument {opt}: {val} exists; pass --overwrite to replace it")
         if val is None:
@@ -280,6 +283,10 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         if opt == "--rti" and not parent.is_dir():  # before the projection (--relight creates its parents)
             ap.error(f"argument {opt}: the folder {parent} does not exist")
         _not_into_a_result(ap, opt, Path(val))
+        foreign = _relight_foreign_entries(val) if opt == "--relight" else []
+        if foreign:
+            ap.error(f"argument --relight: {val} holds files that are not a relight folder's "
+                     f"({', '.join(foreign[:5])}); the folder is replaced as a whole: move them or choose another")
     if args.max_angle != "auto":
         try:
             max_angle = float(args.max_angle)

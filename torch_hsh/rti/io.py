@@ -74,6 +74,7 @@ Example:
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence, Tuple
@@ -81,6 +82,7 @@ from typing import Callable, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from .._atomic import atomic_file, staged_folder, sweep
 from .._checks import check_shape
 from ..io.diligent import PhotometricDataset, _output_folder, _read_png, _read_text, _to_numpy, _write_png
 
@@ -247,9 +249,8 @@ def write_lp(path, names: Sequence[str], lights, overwrite: bool = False) -> Pat
         raise FileExistsError(f"{p} exists; pass overwrite=True to replace it")
     li = li / norms[:, None]
     text = f"{len(names)}\n" + "".join(f"{n} {x:.6f} {y:.6f} {z:.6f}\n" for n, (x, y, z) in zip(names, li))
-    tmp = p.with_name(p.name + ".partial")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(p)
+    with atomic_file(p) as tmp:
+        tmp.write_text(text, encoding="utf-8")
     return p
 
 
@@ -603,9 +604,8 @@ def write_rti_hsh(path, coefficients, overwrite: bool = False) -> Path:
     codes = _quantise(c, lo, span)  # (H, W, 3, T): per pixel R terms, G terms, B terms
     head = f"#HSH1.2\n3\n{W} {H} 3\n{T} 2 1\n".encode("ascii")
     data = head + span.astype("<f4").tobytes() + lo.astype("<f4").tobytes() + np.ascontiguousarray(codes).tobytes()
-    tmp = p.with_name(p.name + ".partial")
-    tmp.write_bytes(data)
-    tmp.replace(p)
+    with atomic_file(p) as tmp:
+        tmp.write_bytes(data)
     return p
 
 
@@ -746,20 +746,47 @@ def save_relight(path, coefficients, fmt: str = "jpg", quality: int = 95, overwr
     if layout not in RELIGHT_LAYOUTS:
         raise ValueError(f"`layout` must be one of {', '.join(RELIGHT_LAYOUTS)}, got {layout!r}")
     H, W = c.shape[:2]
-    folder = _output_folder(path, overwrite)
+    folder = _relight_target(path, overwrite)
     planes = c.transpose(0, 1, 3, 2).reshape(H, W, 27)  # plane index 3 j + colour
     lo = planes.min(axis=(0, 1))
     span = planes.max(axis=(0, 1)) - lo
     span = np.where(span > 0, span, 1.0)
     codes = _quantise(planes, lo, span)
-    for j in range(9):
-        img = np.ascontiguousarray(codes[..., 3 * j: 3 * j + 3])
-        if layout == "image":
-            _write_tile(folder / f"plane_{j}.{fmt}", img, fmt, quality)
-        else:
-            write_deepzoom(folder / f"plane_{j}", img, fmt=fmt, quality=quality, layout=layout)
-    info = {"width": W, "height": H, "format": fmt, "type": "hsh", "colorspace": "rgb", "nplanes": 27,
-            "quality": int(quality), "materials": [{"scale": [float(v) for v in span],
-                                                    "bias": [float(v) for v in -lo / span]}]}
-    (folder / "info.json").write_text(json.dumps(info, indent=1) + "\n", encoding="utf-8")
+    with staged_folder(folder) as stage:  # the folder is replaced as a whole when every file is written
+        for j in range(9):
+            img = np.ascontiguousarray(codes[..., 3 * j: 3 * j + 3])
+            if layout == "image":
+                _write_tile(stage / f"plane_{j}.{fmt}", img, fmt, quality)
+            else:
+                write_deepzoom(stage / f"plane_{j}", img, fmt=fmt, quality=quality, layout=layout)
+        info = {"width": W, "height": H, "format": fmt, "type": "hsh", "colorspace": "rgb", "nplanes": 27,
+                "quality": int(quality), "materials": [{"scale": [float(v) for v in span],
+                                                        "bias": [float(v) for v in -lo / span]}]}
+        (stage / "info.json").write_text(json.dumps(info, indent=1) + "\n", encoding="utf-8")
+    return folder
+
+
+_RELIGHT_ENTRY = re.compile(r"info\.json|plane_\d+(\.(jpg|png|dzi)|_files)")
+
+
+def _relight_foreign_entries(path) -> List[str]:
+    """Entries of the folder ``path`` that :func:`save_relight` does not write (``[]`` if it is missing or empty)."""
+    folder = Path(path)
+    return sorted(n for n in os.listdir(folder) if not _RELIGHT_ENTRY.fullmatch(n)) if folder.is_dir() else []
+
+
+def _relight_target(path, overwrite: bool) -> Path:
+    """The relight folder to replace (its parents created): a non-empty one only with ``overwrite``, and only if
+    it holds nothing but what :func:`save_relight` writes (a file of the user's there would be lost)."""
+    folder = Path(os.path.abspath(path))
+    sweep(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"`path` {folder} exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise FileExistsError(f"{folder} is not empty; pass overwrite=True to replace it")
+    foreign = _relight_foreign_entries(folder)
+    if foreign:
+        raise FileExistsError(f"{folder} holds files that are not a relight folder's ({', '.join(foreign[:5])}); "
+                              "they would be lost when it is replaced: move them or choose another folder")
+    folder.parent.mkdir(parents=True, exist_ok=True)
     return folder

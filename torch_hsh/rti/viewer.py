@@ -47,6 +47,7 @@ from typing import List, Optional
 import numpy as np
 import torch
 
+from .._atomic import atomic_file
 from .._checks import check_shape
 
 __all__ = ["glsl_isotropic_basis", "write_viewer", "default_exposure", "MODES"]
@@ -225,9 +226,8 @@ def write_viewer(path, result, exposure: Optional[float] = None, title: str = "t
     data = html.encode("utf-8")
     if max_bytes is not None and len(data) > max_bytes:
         raise ValueError(f"the viewer would be {len(data) / 2 ** 20:.1f} MiB, more than {max_bytes / 2 ** 20:.0f} MiB")
-    tmp = p.with_name(p.name + ".partial")
-    tmp.write_bytes(data)
-    tmp.replace(p)
+    with atomic_file(p) as tmp:
+        tmp.write_bytes(data)
     return float(exposure)
 
 
