@@ -197,6 +197,15 @@ def test_options_that_a_capture_run_cannot_meet_exit_2(tmp_path, capsys, fake_so
     assert code == 2 and "unrecognized arguments: --linear-input" in err
 
 
+@pytest.mark.parametrize("argv", [["ps", "CAP", "--linear"], ["rti", "RES", "--linear"], ["demo", "--over"]])
+def test_options_are_not_abbreviated(tmp_path, capsys, fake_solver, argv):
+    """`--linear` is no option: a prefix would mean --linear-input in ps and --linear-output in rti."""
+    code, err = _run([a.replace("CAP", str(tmp_path)).replace("RES", str(tmp_path)) for a in argv], capsys)
+    assert code == 2 and f"unrecognized arguments: {argv[-1]}" in _error_line(err), err
+    assert ("--linear-input" in _error_line(err)) == (argv[-1] == "--linear")  # the old name says the new one
+    assert fake_solver.calls == []
+
+
 def test_missing_capture_exit_2(tmp_path, capsys, fake_solver):
     code, err = _run(["ps", str(tmp_path / "nothing"), "--out", str(tmp_path / "res")], capsys)
     assert code == 2 and "argument CAPTURE:" in _error_line(err) and "does not exist" in err

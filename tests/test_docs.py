@@ -103,3 +103,28 @@ def test_citation_and_changelog_name_the_package_version():
     assert f"\nversion: {torch_hsh.__version__}\n" in cff
     release = torch_hsh.__version__.split(".dev")[0]
     assert f"## {release}" in (ROOT / "CHANGELOG.md").read_text(encoding="utf-8")
+
+
+def _doc_commands():
+    """Every ``torch-hsh ...`` line of a ```bash block of a user page, as (page, line)."""
+    for page in user_pages():
+        for block in re.findall(r"^```bash\n(.*?)^```", page.read_text(encoding="utf-8"), re.M | re.S):
+            for line in block.splitlines():
+                if line.startswith("torch-hsh "):
+                    yield page.relative_to(ROOT).as_posix(), line
+
+
+def test_the_documented_commands_parse(capsys):
+    """A command that a page shows is one the parser takes (options spelled as they are, required ones given)."""
+    import shlex
+
+    from torch_hsh.cli import build_parser
+
+    commands = list(_doc_commands())
+    assert len(commands) > 10
+    for page, line in commands:
+        argv = shlex.split(line, comments=True)[1:]
+        try:
+            build_parser().parse_args(argv)
+        except SystemExit:
+            pytest.fail(f"{page}: `{line}` does not parse: {capsys.readouterr().err.strip().splitlines()[-1]}")

@@ -168,3 +168,13 @@ def test_lambertian_table_is_exact_on_the_cli(tmp_path, capsys):
     z = np.load(tmp_path / "l.npz")
     assert abs(z["coefficients"][0, 0] - 1.0) < 1e-12 and float(z["relative_error"].max()) < 1e-6
     assert torch.tensor(z["energy_accuracy"]).min() > 1 - 1e-12
+
+
+def test_fit_out_defaults_to_the_table_name_beside_it(tmp_path, capsys, ggx_file):
+    src = tmp_path / "my_material.binary"
+    src.write_bytes(ggx_file.read_bytes())
+    code, _, stderr = _run(["fit", str(src), "--order", "1", "--quiet"], capsys)
+    assert code == 0, stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["my_material.binary", "my_material.npz"]
+    code, _, stderr = _run(["fit", str(src), "--order", "1", "--quiet"], capsys)  # refused the second time
+    assert code == 2 and "my_material.npz exists" in stderr

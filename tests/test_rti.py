@@ -179,6 +179,9 @@ def test_lights_cli_rti_and_diligent_folders(tmp_path, capsys):
     names, paths, est = read_lp(out)
     assert paths == [cap / f"img_{i + 1:03d}.png" for i in range(len(lights))]
     assert float(angles(est, lights).max()) < 1.0
+    # without --out: CAPTURE.lp beside the folder, which `torch-hsh ps CAPTURE.lp` reads
+    assert cli.main(["lights", str(cap), "--sphere-mask", str(tmp_path / "sphere.png"), "--quiet"]) == 0
+    assert read_lp(tmp_path / "cap.lp")[1] == [cap / f"img_{i + 1:03d}.png" for i in range(len(lights))]
     out2 = cap / "est.lp"
     assert cli.main(["lights", str(cap), "--sphere-circle", "31.5", "31.5", "25.6", "--out", str(out2),
                      "--quiet"]) == 0
@@ -427,6 +430,11 @@ def test_end_to_end_lights_ps_rti_commands(tmp_path, capsys):
     # a --relight folder is created with its parents
     assert cli.main(["rti", str(tmp_path / "res"), "--relight", str(tmp_path / "new" / "sub" / "rl"), "--quiet"]) == 0
     assert (tmp_path / "new" / "sub" / "rl" / "info.json").is_file()
+    # neither --rti nor --relight: RESULT.rti beside the result; progress bars on stderr unless --quiet
+    capsys.readouterr()
+    assert cli.main(["rti", str(tmp_path / "res")]) == 0
+    assert read_rti_file(tmp_path / "res.rti")[0].shape == c.shape
+    assert "RTI projection" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:  # a file of the result folder that is not the result
         cli.main(["rti", str(tmp_path / "res" / "normals.npy"), "--rti", str(tmp_path / "y.rti"), "--quiet"])
     err = capsys.readouterr().err

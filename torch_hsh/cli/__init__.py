@@ -8,7 +8,8 @@ Subcommands, each in the package of its application:
   the HSH RTI export and a WebGL2 relighting page of a result (:mod:`torch_hsh.rti.cli`);
 * ``torch-hsh fit MERL`` — the Helmholtz basis fitted to a MERL ``.binary`` BRDF (:mod:`torch_hsh.cli.fit`).
 
-Conventions shared by every subcommand: the input is the positional argument; every argument and input
+Conventions shared by every subcommand: the input is the positional argument; options are spelled out in
+full (no abbreviations); every argument and input
 file is checked before anything is written; a bad argument exits with status 2 (an argparse message), a
 bad input file or any other failure with status 1 (one line ``torch-hsh CMD: error: ...`` that names the
 file; the traceback with ``--debug``); Ctrl-C exits with 130 and SIGTERM with 143, and neither leaves a
@@ -23,13 +24,14 @@ Example::
 from __future__ import annotations
 
 import argparse
+import re
 import signal
 import sys
 import threading
 import traceback
 import warnings
 from contextlib import contextmanager
-from typing import Any, List, Optional
+from typing import Any, List, NoReturn, Optional
 
 from .common import PROG, InputError
 
@@ -46,14 +48,32 @@ def build_parser() -> argparse.ArgumentParser:
     from ..rti.cli import add_rti_commands
     from .fit import add_fit_command
 
-    ap = argparse.ArgumentParser(prog=PROG, description="Helmholtz HSH BRDF tools (torch_hsh).")
+    ap = _TopParser(prog=PROG, description="Helmholtz HSH BRDF tools (torch_hsh).", allow_abbrev=False)
     ap.add_argument("--version", action="version", version=f"{PROG} {__version__}")
-    sub = ap.add_subparsers(dest="command", metavar="COMMAND")
+    # no abbreviations: `--linear` would otherwise mean --linear-input in ps and --linear-output in rti
+    sub = ap.add_subparsers(dest="command", metavar="COMMAND", parser_class=_ExactParser)
     sub.required = True
     add_ps_commands(sub)
     add_rti_commands(sub)
     add_fit_command(sub)
     return ap
+
+
+class _ExactParser(argparse.ArgumentParser):
+    """A subcommand's parser: options must be spelled out (no prefix abbreviations)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+
+class _TopParser(argparse.ArgumentParser):
+    """The top parser: its message for an unknown option names the option's new name where it was renamed."""
+
+    def error(self, message: str) -> NoReturn:
+        if re.search(r"unrecognized arguments:.*--linear(\s|$)", message):
+            message += " (renamed: `torch-hsh ps --linear-input`, `torch-hsh rti --linear-output`)"
+        super().error(message)
 
 
 def _one_line_warning(prefix: str):

@@ -45,9 +45,10 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
                     "lookup (torch_hsh.project), which is slow for sharp lobes and needs --grazing-cutoff for "
                     "the energy of raw microfacet tables.",
     )
-    p.add_argument("merl", help="MERL .binary file")
+    p.add_argument("merl", metavar="MERL", help="MERL .binary file")
     p.add_argument("--order", type=_int_in(0, 12), default=6, help="basis order P (default 6)")
-    p.add_argument("--out", required=True, help="output .npz file (refused if it exists unless --overwrite)")
+    p.add_argument("--out", default=None, help="output .npz file (default: MERL's name with .npz, beside it; refused "
+                                               "if it exists unless --overwrite)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--method", choices=("samples", "quadrature"), default="samples",
                    help="samples (default): weighted least squares on the table's samples; quadrature: "
@@ -65,7 +66,7 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--accept-unconverged", action="store_true",
                    help="--method quadrature: when the budget runs out, warn and write the best result with its "
                         "error estimate instead of failing")
-    p.add_argument("--threads", type=_int_in(1, 1024), default=2)
+    p.add_argument("--threads", type=_int_in(1, 1024), default=2, help="CPU threads for torch (default 2)")
     _add_common(p)
     p.set_defaults(handler=_run_fit, parser=p)
     return p
@@ -128,7 +129,10 @@ def _run_fit(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
             ap.error("argument --accept-unconverged: applies to --method quadrature only")
     elif args.ridge is not None:
         ap.error("argument --ridge: applies to --method samples only")
-    out = _check_fit_out(ap, Path(os.path.abspath(args.out)), args.overwrite)
+    src = Path(args.merl)  # default --out: NAME.npz beside NAME.binary (never the input itself)
+    out_name = args.out if args.out is not None else str(
+        src.with_name(src.stem + ("_fit" if src.suffix == ".npz" else "") + ".npz"))
+    out = _check_fit_out(ap, Path(os.path.abspath(out_name)), args.overwrite)
     torch.set_num_threads(args.threads)
     from ..io.merl import read_merl
 

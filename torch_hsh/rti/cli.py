@@ -149,7 +149,8 @@ def _lights_arguments(p) -> None:
     g.add_argument("--sphere-mask", metavar="MASK", help="image marking the sphere (> 0 on the sphere)")
     g.add_argument("--sphere-circle", nargs=3, type=_float, metavar=("CX", "CY", "R"),
                    help="sphere circle in pixels: centre column, centre row (pixel centres at integers), radius")
-    p.add_argument("--out", required=True, help="output .lp file (refused if it exists unless --overwrite)")
+    p.add_argument("--out", default=None, help="output .lp file (default: CAPTURE's name + '.lp', beside it; then "
+                                               "torch-hsh ps CAPTURE.lp; refused if it exists unless --overwrite)")
 
 
 def _capture_paths(folder: Path) -> Tuple[List[Path], str]:
@@ -201,7 +202,7 @@ def _run_lights(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     folder = Path(args.folder)
     if not folder.is_dir():
         ap.error(f"argument folder: {folder} is not a folder")
-    out = _out_file(ap, args.out, (".lp",), args.overwrite)
+    out = _out_file(ap, args.out if args.out is not None else _beside(args.folder, ".lp"), (".lp",), args.overwrite)
     if args.sphere_circle is not None and args.sphere_circle[2] < 3:
         ap.error(f"argument --sphere-circle: the radius must be >= 3 pixels, got {args.sphere_circle[2]:g}")
     try:
@@ -239,7 +240,8 @@ def _run_lights(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
 def _rti_arguments(q) -> None:
     _add_result(q)
     q.add_argument("--terms", type=int, choices=(9, 16), default=9, help="number of HSH terms (default 9)")
-    q.add_argument("--rti", default=None, help="write this .rti file (RTIViewer HSH)")
+    q.add_argument("--rti", default=None, help="write this .rti file (RTIViewer HSH; default without --relight: "
+                                               "RESULT's name + '.rti', beside it)")
     q.add_argument("--relight", default=None, help="write this relight/OpenLIME folder (info.json + plane_*.jpg; 9 terms)")
     q.add_argument("--layout", choices=("image", "deepzoom", "deepzoom1px"), default="image",
                    help="planes of the --relight folder: image (default): one plane_N.jpg each; deepzoom: a Deep Zoom "
@@ -267,7 +269,7 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
 
     say = _say(args)
     if args.rti is None and args.relight is None:
-        ap.error("give --rti OUT.rti and/or --relight OUT_DIR")
+        args.rti = _beside(args.result, ".rti")
     if args.layout != "image" and args.relight is None:
         ap.error("argument --layout: applies to the --relight folder; give --relight OUT_DIR")
     if args.relight is not None and args.terms != 9:
@@ -308,7 +310,8 @@ def _run_rti(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
         lz = torch.nn.functional.normalize(res.lights.double(), dim=-1)[:, 2].clamp(-1, 1)
         max_angle = min(90.0, float(torch.rad2deg(torch.arccos(lz)).max()))
     coefficients = project_to_rti(n, a, args.terms, mask=mask, exposure=exposure, max_angle_deg=max_angle,
-                                  linear=args.linear_output, nonnegative=not args.allow_negative)
+                                  linear=args.linear_output, nonnegative=not args.allow_negative,
+                                  progress=not args.quiet)
     written = []
     if args.rti is not None:
         write_rti_hsh(args.rti, coefficients, overwrite=args.overwrite)
@@ -335,21 +338,21 @@ def _view_arguments(v) -> None:
     _add_exposure(v)
 
 
-def _default_view_out(result: str) -> str:
-    """``RESULT.html`` beside a result folder (or beside the folder of its ``result.npz``); ``NAME.html`` beside
-    any other ``.npz``."""
-    p = Path(os.path.abspath(result))
+def _beside(path: str, suffix: str) -> str:
+    """The default output of an input: ``FOLDER.suffix`` beside a folder (beside the folder of a ``result.npz``),
+    ``NAME.suffix`` beside any other file."""
+    p = Path(os.path.abspath(path))
     if p.is_dir() or p.name == "result.npz":
         folder = p if p.is_dir() else p.parent
-        return str(folder.parent / f"{folder.name}.html")
-    return str(p.with_suffix(".html"))
+        return str(folder.parent / f"{folder.name}{suffix}")
+    return str(p.with_suffix(suffix))
 
 
 def _run_view(args, ap: argparse.ArgumentParser) -> Dict[str, Any]:
     from .viewer import write_viewer
 
     say = _say(args)
-    out = _out_file(ap, args.out if args.out is not None else _default_view_out(args.result), (".html", ".htm"),
+    out = _out_file(ap, args.out if args.out is not None else _beside(args.result, ".html"), (".html", ".htm"),
                     args.overwrite)
     res = _load_result(args, ap)
     exposure = write_viewer(out, res, exposure=args.exposure, title=f"torch_hsh: {Path(args.result).name}",

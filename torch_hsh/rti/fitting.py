@@ -359,6 +359,7 @@ def project_to_rti(
     nphi: int = 48,
     chunk_size: int = 256,
     nonnegative: bool = False,
+    progress: bool = False,
 ) -> torch.Tensor:
     r"""Project a photometric-stereo result onto the RTI HSH basis, pixel by pixel.
 
@@ -404,6 +405,7 @@ def project_to_rti(
         chunk_size: pixels per chunk. The rendering of a chunk holds about ``chunk_size x nz x nphi x K x 3``
             float64 values (at order 3 and the default rule, 256 pixels: about 250 MB); larger chunks are not faster
             (the bunny, 20,317 pixels, 1 thread: 14 s at 256, 24 s and 2 GB at 4,096).
+        progress: show a progress bar per stage (tqdm, on stderr), as ``torch-hsh rti`` does.
 
     Returns:
         ``(*S, C, terms)`` RTI coefficients (float64).
@@ -443,6 +445,7 @@ def project_to_rti(
     dirs, Hw = dirs.to(n.device), Hw.to(n.device)
     out = torch.zeros(n.shape[0], C, terms, dtype=torch.float64, device=n.device)
     idx = keep.nonzero().squeeze(1).to(n.device)
+    bar = _bar(progress, idx.numel(), "RTI projection")
     for s0 in range(0, idx.numel(), chunk_size):
         sel = idx[s0 : s0 + chunk_size]
         img = render_coefficients(n[sel], dirs, a[sel]).clamp(min=0.0)  # (M, P, C)
@@ -450,9 +453,18 @@ def project_to_rti(
         if not linear:
             img = torch.where(img <= 0.0031308, 12.92 * img, 1.055 * img.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
         out[sel] = torch.einsum("mpc,mt->pct", img, Hw)
+        bar.update(sel.numel())
+    bar.close()
     if nonnegative:
-        out[idx] = nonnegative_rti(out[idx], metric)
+        out[idx] = nonnegative_rti(out[idx], metric, progress=progress)
     return out.reshape(*S, C, terms)
+
+
+def _bar(show: bool, total: int, desc: str, unit: str = "px"):
+    """A tqdm bar over ``total`` items, or a stand-in that does nothing when ``show`` is false."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, disable=not show)
 
 
 def _cap_grid(max_angle_deg: float, nz: int, nphi: int, dtype=torch.float64) -> torch.Tensor:
@@ -485,6 +497,7 @@ def nonnegative_rti(
     nz: int = 24,
     nphi: int = 96,
     chunk_size: int = 16384,
+    progress: bool = False,
 ) -> torch.Tensor:
     r"""The nearest RTI coefficients whose relit value is non-negative at every light a viewer can show.
 
@@ -518,6 +531,7 @@ def nonnegative_rti(
         iterations, rounds, working: ADMM steps per round, rounds, constraints kept per pixel and colour.
         nz, nphi: the solver's grid; the constraint holds on the grid twice as fine in each direction.
         chunk_size: pixel-colours per chunk.
+        progress: show a progress bar over the pixel-colours that need the constraint (tqdm, on stderr).
 
     Returns:
         ``(*S, C, T)``, same dtype.
@@ -553,6 +567,7 @@ def nonnegative_rti(
     h0 = 1.0 / math.sqrt(2 * math.pi)  # H_0, the constant term
     out = c.clone()
     bad = ((c @ check.T).amin(dim=1) < float(margin)).nonzero().squeeze(1)
+    bar = _bar(progress, bad.numel(), "RTI non-negative sums", "pixel-colour")
     for s0 in range(0, bad.numel(), chunk_size):
         sel = bad[s0: s0 + chunk_size]
         y0 = c[sel] @ L  # (P, T): rows (L^T c)^T
@@ -580,6 +595,8 @@ def nonnegative_rti(
         short = (float(margin) - (cs @ check.T).amin(dim=1)).clamp(min=0.0)
         cs[:, 0] = cs[:, 0] + short / h0
         out[sel] = cs
+        bar.update(sel.numel())
+    bar.close()
     return out.reshape(coefficients.shape).to(coefficients.dtype)
 
 
