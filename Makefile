@@ -26,7 +26,7 @@ MUTATION_STAMP := $(VENV)/.torch_hsh_mutation_installed
 # Docstring examples to skip (none at present).
 DOCTEST_DESELECT ?=
 
-.PHONY: demo test test-fast test-lowest research-test doctest docs lint bench mutate env clean
+.PHONY: demo test test-fast test-lowest research-test doctest docs lint bench mutate fuzz env clean
 
 # torch first, then the package and the demo's one extra.
 $(BASE_STAMP): pyproject.toml setup.py
@@ -96,6 +96,14 @@ $(MUTATION_STAMP): $(STAMP) pyproject.toml
 # has 2397 mutants: about 5 h on 2 loaded cores (0.12 mutants/s); 440 of them took 48 min. ARGS="kernel" runs one module, ARGS="kernel --max-children 2".
 mutate: $(MUTATION_STAMP)
 	$(PY) tools/mutate.py $(ARGS)
+
+# Fuzzing of every file reader (tools/fuzz.py; docs/reliability.md): FUZZ_INPUTS inputs per target (a few
+# targets take a share of it), one worker, at low priority; failing inputs go to build/fuzz/failures.
+# 100,000 inputs: about 25 min on 2 loaded cores. ARGS="--target lp merl" runs some targets; tests/test_fuzz.py
+# is the short run of CI.
+FUZZ_INPUTS ?= 8500
+fuzz: $(STAMP)
+	OMP_NUM_THREADS=1 nice -n 10 $(PY) tools/fuzz.py -n $(FUZZ_INPUTS) --json build/fuzz/results.json $(ARGS)
 
 # The basis benchmark (benchmarks/README.md lists the others, run the same way).
 bench: $(BENCH_STAMP)
