@@ -131,6 +131,20 @@ def test_data_window_larger_than_the_file_is_refused_before_the_pixels_are_read(
     assert opened == [{"header_only": True}]  # the bindings never allocated the claimed pixels
 
 
+def test_stack_of_mixed_images_and_a_binary_header_attribute_name_the_file(tmp_path):
+    write_exr(tmp_path / "mixed.exr", {"img000": _rand(H, W), "img001": _rand(H, W, 3)})
+    with pytest.raises(ValueError, match=r"mixed\.exr: the images of the stack differ"):  # was numpy's np.stack error
+        read_image_stack_exr(tmp_path / "mixed.exr")
+    f = tmp_path / "attr.exr"
+    write_coefficient_maps_exr(f, _rand(H, W, 3, 4))
+    d = bytearray(f.read_bytes())
+    k = d.find(b"torch_hsh_colors\x00string\x00") + len(b"torch_hsh_colors\x00")
+    d[k + 4:k + 6] = b"\xff\xf0"  # the attribute's type name is no longer UTF-8: UnicodeDecodeError on access
+    f.write_bytes(bytes(d))
+    with pytest.raises(ValueError, match=r"attr\.exr: corrupt header: an attribute is not UTF-8 text"):
+        read_coefficient_maps_exr(f)
+
+
 def test_image_stack_roundtrip(tmp_path):
     imgs = torch.rand(12, H, W, 3, dtype=torch.float64)
     write_image_stack_exr(tmp_path / "s.exr", imgs)

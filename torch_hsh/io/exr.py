@@ -251,8 +251,13 @@ def read_image_stack_exr(path) -> np.ndarray:
         d = layers[key]
         if "" in d:
             out.append(d[""])
-        else:
+        elif len({a.shape for a in d.values()}) == 1:
             out.append(np.stack([d[c] for c in "RGBA" if c in d], axis=-1))
+        else:
+            raise ValueError(f"{path}: the channels of image {key} differ in size (subsampled channels)")
+    if len({a.shape for a in out}) > 1:
+        raise ValueError(f"{path}: the images of the stack differ in size or channels "
+                         f"({sorted({a.shape for a in out})})")
     return np.stack(out, axis=0)
 
 
@@ -350,8 +355,11 @@ def read_coefficient_maps_exr(path) -> Tuple[np.ndarray, List[str], List[str]]:
     hdr = _read_header(path)
     if _COEFF_ATTR not in hdr or _COLOR_ATTR not in hdr:
         raise ValueError(f"{path}: not a coefficient-map EXR (missing header attribute {_COEFF_ATTR!r})")
-    names = str(hdr[_COEFF_ATTR]).split(",")
-    colors = str(hdr[_COLOR_ATTR]).split(",")
+    try:
+        names = str(hdr[_COEFF_ATTR]).split(",")
+        colors = str(hdr[_COLOR_ATTR]).split(",")
+    except UnicodeDecodeError as e:  # the bindings decode string attributes on access
+        raise ValueError(f"{path}: corrupt header: an attribute is not UTF-8 text ({e})") from None
     ch = read_exr(path)
     try:
         planes = [[ch[f"{col}.{nm}"] for nm in names] for col in colors]
