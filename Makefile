@@ -99,7 +99,7 @@ mutate: $(MUTATION_STAMP)
 
 # Fuzzing of every file reader (tools/fuzz.py; docs/reliability.md): FUZZ_INPUTS inputs per target (a few
 # targets take a share of it), one worker, at low priority; failing inputs go to build/fuzz/failures.
-# 100,000 inputs: about 25 min on 2 loaded cores. ARGS="--target lp merl" runs some targets; tests/test_fuzz.py
+# The default 106,420 inputs: 4 min on 2 idle cores, 20 min on loaded ones. ARGS="--target lp merl" runs some targets; tests/test_fuzz.py
 # is the short run of CI.
 FUZZ_INPUTS ?= 8500
 fuzz: $(STAMP)
