@@ -324,6 +324,11 @@ def test_never_replaces_cwd_home_or_the_data_folder(tmp_path, capsys, fake_solve
     assert (data / "light_directions.txt").exists()
 
 
+def test_a_manifest_nested_too_deeply_is_not_ours(tmp_path):
+    (tmp_path / "manifest.json").write_text("[" * 100000)  # json raises RecursionError, not ValueError
+    assert not result_folder.is_result_folder(tmp_path)
+
+
 def test_our_result_with_a_user_file_added_is_not_ours(tmp_path, capsys, fake_solver):
     out = tmp_path / "res"
     cli.run(["demo", "--out", str(out), *FAST])

@@ -185,6 +185,36 @@ def test_png_reader_truncated_file_names_it(tmp_path):
         _read_png(f)
 
 
+def test_png_reader_refuses_a_header_larger_than_the_file_before_decoding(tmp_path, monkeypatch):
+    import torch_hsh.io.diligent as dil
+
+    f = tmp_path / "big.png"
+    _write_png(f, np.zeros((4, 5, 3), np.uint16))
+    d = bytearray(f.read_bytes())
+    d[16:24] = struct.pack(">II", 20000, 20000)  # 2.4 GB of 16-bit RGB claimed by a 100-byte file
+    d[29:33] = struct.pack(">I", zlib.crc32(bytes(d[12:29])) & 0xFFFFFFFF)
+    f.write_bytes(bytes(d))
+    monkeypatch.setattr(dil, "_kornia_rs_png", lambda *a: pytest.fail("decoded an unchecked header"))
+    with pytest.raises(ValueError, match=r"big\.png: the PNG header claims 2400000000 decoded bytes"):
+        _read_png(f)
+
+
+def test_png_decoder_panic_is_a_value_error(tmp_path, monkeypatch):
+    import torch_hsh.io.diligent as dil
+
+    class PanicException(BaseException):  # pyo3's, raised by kornia-rs when an allocation fails
+        pass
+
+    def panic(path, mode):
+        raise PanicException("PyObject pointer is null")
+
+    f = tmp_path / "p.png"
+    _write_png(f, np.zeros((4, 5, 3), np.uint16))
+    monkeypatch.setattr(dil, "_kornia_rs_png", lambda *a: panic)
+    with pytest.raises(ValueError, match=r"p\.png: cannot decode the 16-bit PNG \(PanicException"):
+        _read_png(f)
+
+
 def test_png_without_kornia_rs_fails_loudly(tmp_path, monkeypatch):
     f = tmp_path / "x.png"
     _write_png(f, np.zeros((4, 5, 3), np.uint16))
@@ -311,8 +341,9 @@ def test_load_errors(tmp_path):
         ("filenames.txt", "../x.png\nb.png\nc.png\n", "outside the folder"),
         ("filenames.txt", "/etc/x.png\nb.png\nc.png\n", "outside"),
         ("filenames.txt", "a.png\nb.png\na.png\n", "line 3.*repeats line 1"),
-        ("a.png", np.zeros((H + 1, W, 3), np.uint16), "differs from the first image"),
-        ("a.png", np.zeros((H, W, 3), np.uint8), "bit depth 8 differs"),
+        ("filenames.txt", "b.png\n" + "a" * 300 + ".png\nc.png\n", r"filenames\.txt line 2: image name .* not a file"),
+        ("a.png", np.zeros((H + 1, W, 3), np.uint16), r"differs from the first image's .* \(b\.png\)"),
+        ("a.png", np.zeros((H, W, 3), np.uint8), r"bit depth 8 differs .* \(b\.png\)"),
         ("mask.png", np.zeros((H, W + 2), np.uint8), "mask size"),
     ]):
         p = fresh(f"replaced{i}")
@@ -324,6 +355,11 @@ def test_load_errors(tmp_path):
             (p / name).write_text(content)
         with pytest.raises(ValueError, match=msg):
             load_diligent(p)
+
+    p = fresh("missing")  # the error names the file that lists the missing image
+    (p / "a.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"image 'a\.png' \(number 2, listed in filenames\.txt\) not found"):
+        load_diligent(p)
 
     # a grey 16-bit image loads as three equal channels
     p = fresh("grey")

@@ -108,6 +108,43 @@ def test_truncated_pixel_data_names_the_file(tmp_path):
         read_coefficient_maps_exr(cm)
 
 
+def test_data_window_larger_than_the_file_is_refused_before_the_pixels_are_read(tmp_path, monkeypatch):
+    import struct
+
+    import torch_hsh.io.exr as exr
+
+    f = write_exr(tmp_path / "big.exr", {"": _rand(4, 8, 3)})
+    d = bytearray(f.read_bytes())
+    k = d.find(b"dataWindow\x00box2i\x00") + len(b"dataWindow\x00box2i\x00") + 4
+    d[k + 8:k + 12] = struct.pack("<i", 20_000_000)  # xMax: 20 million x 4 rows x 3 channels in a 400-byte file
+    f.write_bytes(bytes(d))
+    opened = []
+
+    class Recording:
+        def File(self, path, **kwargs):
+            opened.append(kwargs)
+            return OpenEXR.File(path, **kwargs)
+
+    monkeypatch.setattr(exr, "_openexr", Recording)
+    with pytest.raises(ValueError, match=r"big\.exr: the OpenEXR header claims 960000048 decoded bytes"):
+        read_exr(f)
+    assert opened == [{"header_only": True}]  # the bindings never allocated the claimed pixels
+
+
+def test_stack_of_mixed_images_and_a_binary_header_attribute_name_the_file(tmp_path):
+    write_exr(tmp_path / "mixed.exr", {"img000": _rand(H, W), "img001": _rand(H, W, 3)})
+    with pytest.raises(ValueError, match=r"mixed\.exr: the images of the stack differ"):  # was numpy's np.stack error
+        read_image_stack_exr(tmp_path / "mixed.exr")
+    f = tmp_path / "attr.exr"
+    write_coefficient_maps_exr(f, _rand(H, W, 3, 4))
+    d = bytearray(f.read_bytes())
+    k = d.find(b"torch_hsh_colors\x00string\x00") + len(b"torch_hsh_colors\x00")
+    d[k + 4:k + 6] = b"\xff\xf0"  # the attribute's type name is no longer UTF-8: UnicodeDecodeError on access
+    f.write_bytes(bytes(d))
+    with pytest.raises(ValueError, match=r"attr\.exr: corrupt header: an attribute is not UTF-8 text"):
+        read_coefficient_maps_exr(f)
+
+
 def test_image_stack_roundtrip(tmp_path):
     imgs = torch.rand(12, H, W, 3, dtype=torch.float64)
     write_image_stack_exr(tmp_path / "s.exr", imgs)

@@ -60,6 +60,7 @@ def test_lp_roundtrip_comments_paths(tmp_path):
     ("two\na.jpg 0 0 1\n", "line 1: expected the number of images"),
     ("1\na.jpg 0.6 0 -0.8\n", "line 2: light below the horizon"),
     ("# only a comment\n", "empty .lp file"),
+    ("1\n" + "a" * 300 + ".jpg 0 0 1\n", "line 2: image name 'aaa"),  # the OS's limit: 255 bytes a part
 ])
 def test_lp_errors_name_file_and_line(tmp_path, text, msg):
     lp = tmp_path / "bad.lp"
@@ -117,6 +118,11 @@ def test_missing_image_mixed_sizes_and_undecodable(tmp_path):
 
     Image.fromarray(np.zeros((7, 9, 3), np.uint8)).save(cap / "img_004.png")
     with pytest.raises(ValueError, match=r"img_004.png: image size 9x7 \(WxH\) differs"):
+        load_rti(cap)
+    from torch_hsh.io.diligent import _write_png
+
+    _write_png(cap / "img_004.png", np.zeros((20, 20, 3), np.uint16))
+    with pytest.raises(ValueError, match=r"img_004.png: bit depth 16 differs from the first image's 8 \(img_001.png\)"):
         load_rti(cap)
     (cap / "img_004.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really")
     with pytest.raises(ValueError, match="img_004.png"):
@@ -207,6 +213,46 @@ def test_ps_cli_bad_rti_inputs_exit_1_naming_the_file(tmp_path, capsys, case, ms
     err = capsys.readouterr().err
     assert msg in err and "Traceback" not in err
     assert not (tmp_path / "res").exists()
+
+
+def _tiff_with_size(path, width, height):
+    """A 16-bit grey TIFF whose ImageWidth / ImageLength tags are overwritten (the pixels stay 4 x 3)."""
+    import struct
+
+    from PIL import Image
+
+    Image.fromarray(np.zeros((3, 4), np.uint16)).save(path)
+    d = bytearray(path.read_bytes())
+    ifd = struct.unpack("<I", d[4:8])[0]
+    for k in range(struct.unpack("<H", d[ifd:ifd + 2])[0]):
+        e = ifd + 2 + 12 * k
+        tag, typ = struct.unpack("<HH", d[e:e + 4])
+        if tag in (256, 257):
+            v = width if tag == 256 else height
+            d[e + 8:e + 12] = struct.pack("<HH", v, 0) if typ == 3 else struct.pack("<I", v)
+    path.write_bytes(bytes(d))
+
+
+def test_read_image_refuses_a_header_larger_than_the_file(tmp_path):
+    # 9000 x 9000 is below Pillow's decompression-bomb limit: without the check it decodes a 100-byte file into
+    # hundreds of megabytes before finding it truncated
+    from PIL import Image
+
+    f = tmp_path / "big.jpg"
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(f)
+    d = bytearray(f.read_bytes())
+    k = d.find(b"\xff\xc0")
+    d[k + 5:k + 9] = (9000).to_bytes(2, "big") * 2
+    f.write_bytes(bytes(d))
+    with pytest.raises(ValueError, match=r"big\.jpg: the JPEG header claims 243000000 decoded bytes"):
+        read_image(f)
+    d[k + 5:k + 9] = (1500).to_bytes(2, "big") * 2  # 6.75 MB: far below Pillow's limit, far above what 700 bytes hold
+    f.write_bytes(bytes(d))
+    with pytest.raises(ValueError, match=r"big\.jpg: the JPEG header claims 6750000 decoded bytes"):
+        read_image(f)
+    _tiff_with_size(tmp_path / "big.tif", 9000, 9000)
+    with pytest.raises(ValueError, match=r"big\.tif: the TIFF header claims 486000000 decoded bytes"):
+        read_image(tmp_path / "big.tif")
 
 
 def test_read_image_grey_16bit_tiff_rgba_png_and_grey_jpeg(tmp_path):

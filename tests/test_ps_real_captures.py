@@ -291,6 +291,67 @@ def test_result_save_and_load_round_trip(tmp_path):
         assert "allow_pickle" not in str(e.value)
 
 
+def _npy_with_header(header: str, data: bytes = b"") -> bytes:
+    """A version 1.0 ``.npy`` member with ``header`` (the dict text) as written, padded as numpy pads it."""
+    import struct
+
+    text = header.encode("latin1")
+    text += b" " * (-(10 + len(text) + 1) % 64) + b"\n"
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text + data
+
+
+def _rezipped(src, dst, **members):
+    """``src`` (an .npz) copied to ``dst`` with the ``name.npy`` members of ``members`` replaced (None: removed)."""
+    import zipfile
+
+    with zipfile.ZipFile(src) as zi, zipfile.ZipFile(dst, "w") as zo:
+        for name in zi.namelist():
+            new = members.get(name[:-4], zi.read(name))
+            if new is not None:
+                zo.writestr(name, new)
+    return dst
+
+
+def test_result_read_refuses_corrupt_archives_naming_the_file(tmp_path):
+    import io
+    import json
+
+    import numpy as np
+
+    g = torch.Generator().manual_seed(0)
+    S = (3, 4)
+    r = ps.HSHResult(normals=torch.nn.functional.normalize(torch.randn(*S, 3, generator=g), dim=-1),
+                     coefficients=torch.randn(*S, 3, 20, generator=g), albedo=torch.rand(*S, 3, generator=g),
+                     residual=torch.rand(*S, generator=g), weights=torch.zeros(*S, 0), mask=torch.ones(*S, dtype=torch.bool),
+                     order=3, lights=torch.tensor([[0.0, 0.0, 1.0]] * 5), runtime_s=0.5)
+    good = tmp_path / "good.npz"
+    r.write(good)
+    assert ps.HSHResult.read(good).normals.shape == S + (3,)
+
+    def meta(text: str) -> bytes:
+        buf = io.BytesIO()
+        np.save(buf, np.frombuffer(text.encode(), dtype=np.uint8))
+        return buf.getvalue()
+
+    ok_meta = json.dumps({"format": "torch_hsh.HSHResult", "version": 1, "order": 3})
+    cases = {  # without the checks: MemoryError, AttributeError, RecursionError, KeyError, TokenError, a wrong result
+        "huge": (dict(normals=_npy_with_header("{'descr': '<f4', 'fortran_order': False, 'shape': (1000000000000, 3), }")),
+                 r"member normals\.npy claims 12000000000000 bytes"),
+        "list": (dict(metadata=meta("[1, 2]")), r"not a saved HSHResult \(format 'list'\)"),
+        "deep": (dict(metadata=meta("[" * 100000)), r"not a saved HSHResult \(RecursionError"),
+        "order": (dict(metadata=meta(ok_meta.replace("3", '"3"'))), r"corrupt HSHResult metadata"),
+        "missing": (dict(normals=None), r"not a saved HSHResult \(no normals\)"),
+        "shape": (dict(albedo=meta("x")), r"corrupt HSHResult: albedo is uint8 \(\d+,\), expected float \(3, 4, \*\)"),
+        "pixels": (dict(albedo=_npy_with_header("{'descr': '<f8', 'fortran_order': False, 'shape': (2, 4, 3), }",
+                                                bytes(192))), r"corrupt HSHResult: albedo is float64 \(2, 4, 3\), expected float \(3, 4, \*\)"),
+        "token": (dict(normals=_npy_with_header("{'descr': '<f4', 'shape': (3,")), r"not a saved HSHResult \(TokenError"),
+    }
+    for name, (members, msg) in cases.items():
+        f = _rezipped(good, tmp_path / f"{name}.npz", **members)
+        with pytest.raises(ValueError, match=rf"{name}\.npz: {msg}"):
+            ps.HSHResult.read(f)
+
+
 def test_refinement_passes_restart_from_the_refined_normals():
     img, l, n = _scene(p=200, l=24, seed=3)
     one = ps.solve_hsh(img, l, refinement_passes=1, **FAST)

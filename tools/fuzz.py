@@ -5,7 +5,9 @@ writers (``save_rti``, ``save_diligent``, ``write_merl``, ``write_exr``, ``HSHRe
 temporary folder at start-up; nothing is committed. Each input is a seed's file with 1 to 4 mutations
 (bit flips, truncation, insertion, deletion, chunk duplication, numeric fields overwritten with NaN / inf /
 huge / negative values, header dimensions made huge with the checksums fixed, text tokens and lines
-replaced, removed, repeated), drawn from a seeded RNG: the same ``--seed`` gives the same inputs.
+replaced, removed, repeated, JSON nested 100,000 deep; inside an ``.npz`` one member mutated or removed,
+the metadata's JSON as text, with valid checksums), drawn from a seeded RNG: the same ``--seed`` gives the
+same inputs. Text mutations go to text targets and to any ``.json`` / ``.txt`` / ``.lp`` seed file.
 
 The reader runs in one worker process (a pool of one), in-process there, under a per-input alarm and an
 address-space limit (``--mem-mb`` above what the worker holds after start-up, so an allocation sized by an
@@ -13,11 +15,15 @@ unchecked header fails instead of swapping). The parent restarts a worker that d
 is counted) or stops answering (a hang). Each input is classified as
 
 * ``ok``: the reader returned;
-* ``lib``: it raised ``ValueError`` / ``OSError`` (or a subclass) from a frame inside the imported
-  ``torch_hsh`` package folder, with a message naming the mutated file (its name or path);
+* ``lib``: it raised ``ValueError`` / ``OSError`` (or a subclass) or an exception class of torch_hsh (the
+  CLI's ``InputError``) from a frame inside the imported ``torch_hsh`` package folder, with a message naming
+  the mutated file (its name or path);
 * ``foreign``: any other exception (raised outside torch_hsh, of another type, or not naming the file);
 * ``hang``: no answer within ``--timeout`` seconds;
 * ``crash``: the worker died (segfault, abort).
+
+``PLANTED`` holds readers that misbehave on purpose, one per kind (tests/test_fuzz.py checks the classifier
+on them); they are not part of a campaign.
 
 Failing inputs (foreign, hang, crash) are written to ``--save`` with the message beside them, and replayed
 one at a time (in this process, with the traceback) by::
@@ -26,6 +32,7 @@ one at a time (in this process, with the traceback) by::
 
 Usage::
 
+    make fuzz                                     # every target, FUZZ_INPUTS (8500) each
     python tools/fuzz.py                          # every target, --inputs each (default 6000)
     python tools/fuzz.py --target lp merl -n 500  # some targets
     python tools/fuzz.py --list
@@ -260,6 +267,47 @@ TARGETS: Dict[str, Tuple[Callable[[Path], List[Seed]], bool, float]] = {
 }
 
 
+def _planted(call: Callable[[Path, Path], object]) -> Callable[[Path], List[Seed]]:
+    """A target of the classifier's own test: ``call`` fed a one-line file."""
+    def build(base: Path) -> List[Seed]:
+        base.mkdir(parents=True, exist_ok=True)
+        (base / "planted.bin").write_bytes(b"planted\n")
+        return [Seed(base, "planted.bin", call)]
+    return build
+
+
+def _hang_unalarmed(folder: Path, victim: Path) -> None:
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGALRM})  # as a C loop would: only the parent sees it
+    time.sleep(3600)
+
+
+def _spin(folder: Path, victim: Path) -> None:
+    while True:
+        pass
+
+
+def _lib_read(folder: Path, victim: Path) -> None:
+    from torch_hsh.io.merl import read_merl
+
+    read_merl(victim)
+
+
+#: Targets that misbehave on purpose (tests/test_fuzz.py checks that each is classified as its name says);
+#: not part of a campaign.
+PLANTED: Dict[str, Callable[[Path], List[Seed]]] = {
+    "planted_lib": _planted(_lib_read),
+    "planted_foreign": _planted(lambda folder, v: __import__("numpy").empty(-1)),
+    "planted_hang": _planted(_spin),
+    "planted_hang_unalarmed": _planted(_hang_unalarmed),
+    "planted_abort": _planted(lambda folder, v: os.abort()),
+    "planted_segfault": _planted(lambda folder, v: __import__("ctypes").string_at(0)),
+}
+
+
+def _builder(target: str) -> Callable[[Path], List[Seed]]:
+    return PLANTED[target] if target in PLANTED else TARGETS[target][0]
+
+
 # --------------------------------------------------------------------------- #
 # mutations
 # --------------------------------------------------------------------------- #
@@ -268,7 +316,7 @@ _INTS = [0, 1, -1, 2, 255, 256, 0x7FFF, 0x8000, 0xFFFF, 0x10000, 0x7FFFFFFF, -0x
 _FLOATS = [float("nan"), float("inf"), float("-inf"), 1e308, -1e308, -1.0, 0.0, 1e-320, 3.4e38, 65504.0]
 _TOKENS = ["nan", "NaN", "inf", "-inf", "1e309", "-1e309", "-1", "0", "-0", "1e-320", "99999999999999999999999",
            "0x10", "1_0", "", "x", "#", "\t", "\x00", "\u00e9", "\ufeff", "..", "/", "\\", "C:\\a.png", "/etc/passwd",
-           "1,2", "1e400", "-0.0", "+5", "٣"]
+           "1,2", "1e400", "-0.0", "+5", "٣", "[" * 100000, '{"a":' * 50000, "[]", "null", '"x"']
 
 
 def _crc_fix_png(d: bytearray) -> bytearray:
@@ -426,8 +474,40 @@ def _mutate_text(d: bytearray, rng: random.Random) -> bytearray:
     return bytearray(b"\n".join(lines))
 
 
+def _mutate_zip(d: bytearray, rng: random.Random) -> bytearray:
+    """An ``.npz``: one member removed or mutated (the metadata's JSON as text, re-saved), valid CRCs kept."""
+    import io
+    import zipfile
+
+    import numpy as np
+
+    try:
+        with zipfile.ZipFile(io.BytesIO(bytes(d))) as zf:
+            members = [(i.filename, zf.read(i)) for i in zf.infolist()]
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError):
+        return _mutate_bytes(d, rng)
+    k = rng.randrange(len(members))
+    name, data = members[k]
+    if rng.random() < 0.1:
+        del members[k]
+    elif name == "metadata.npy" and rng.random() < 0.7:
+        text = bytes(np.load(io.BytesIO(data)))
+        buf = io.BytesIO()
+        np.save(buf, np.frombuffer(mutate(text, True, rng), dtype=np.uint8))
+        members[k] = (name, buf.getvalue())
+    else:
+        members[k] = (name, mutate(data, rng.random() < 0.3, rng))
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as zw:
+        for name, data in members:
+            zw.writestr(name, data)
+    return bytearray(out.getvalue())
+
+
 def mutate(data: bytes, text: bool, rng: random.Random) -> bytes:
     d = bytearray(data)
+    if d[:4] == b"PK\x03\x04" and rng.random() < 0.7:
+        return bytes(_mutate_zip(d, rng))
     for _ in range(rng.choice([1, 1, 1, 2, 2, 3, 4])):
         d = _mutate_text(d, rng) if text and rng.random() < 0.75 else _mutate_bytes(d, rng)
     return bytes(d[: 1 << 20])
@@ -458,13 +538,16 @@ def classify(exc: Optional[BaseException], victim: Path, pkg: str) -> Tuple[str,
     msg = str(exc)
     names_file = victim.name in msg or str(victim) in msg
     detail = f"{type(exc).__module__}.{type(exc).__qualname__}: {msg[:500]} [raised at {where}:{frames[-1].lineno if frames else 0}]"
-    if in_lib and names_file and isinstance(exc, (ValueError, OSError)) and not isinstance(exc, MemoryError):
+    own = isinstance(exc, (ValueError, OSError)) or type(exc).__module__.split(".")[0] == "torch_hsh"
+    if in_lib and names_file and own:
         return "lib", detail
     return "foreign", detail
 
 
 def _run_one(seed: Seed, data: bytes, timeout: float, pkg: str) -> Tuple[str, str]:
+    """Read ``data`` as the seed's victim file (restored afterwards: seeds may share a folder)."""
     victim = seed.folder / seed.victim
+    original = victim.read_bytes()
     victim.write_bytes(data)
 
     def alarm(signum, frame):
@@ -482,6 +565,7 @@ def _run_one(seed: Seed, data: bytes, timeout: float, pkg: str) -> Tuple[str, st
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, old)
+        victim.write_bytes(original)
     kind, detail = classify(exc, victim, pkg)
     if kind == "foreign":
         detail += "\n" + "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)[-6:])
@@ -500,7 +584,7 @@ def _set_memory_limit(mem_mb: int) -> None:
         pass
 
 
-def _worker(conn, target: str, timeout: float, mem_mb: int) -> None:
+def _worker(conn, targets: List[str], timeout: float, mem_mb: int) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
@@ -508,17 +592,17 @@ def _worker(conn, target: str, timeout: float, mem_mb: int) -> None:
 
     torch.set_num_threads(1)
     pkg = _package_dir()
-    base = Path(tempfile.mkdtemp(prefix=f"torch_hsh_fuzz_{target}_"))
+    base = Path(tempfile.mkdtemp(prefix="torch_hsh_fuzz_"))
     try:
-        seeds = TARGETS[target][0](base)
-        conn.send([(s.folder / s.victim).read_bytes() for s in seeds])
+        seeds = {t: _builder(t)(base / t) for t in targets}
+        conn.send({t: [(s.victim, (s.folder / s.victim).read_bytes()) for s in v] for t, v in seeds.items()})
         _set_memory_limit(mem_mb)
         while True:
             msg = conn.recv()
             if msg is None:
                 break
-            k, data = msg
-            conn.send(_run_one(seeds[k], data, timeout, pkg))
+            t, k, data = msg
+            conn.send(_run_one(seeds[t][k], data, timeout, pkg))
     finally:
         shutil.rmtree(base, ignore_errors=True)
 
@@ -527,22 +611,22 @@ def _worker(conn, target: str, timeout: float, mem_mb: int) -> None:
 # the campaign (parent)
 # --------------------------------------------------------------------------- #
 class _Pool1:
-    """One worker process, restarted after a crash or a hang."""
+    """One worker process holding the seeds of ``targets``, restarted (at the next input) after a crash or a hang."""
 
-    def __init__(self, target: str, timeout: float, mem_mb: int):
-        self.target, self.timeout, self.mem_mb = target, timeout, mem_mb
+    def __init__(self, targets: List[str], timeout: float, mem_mb: int, grace: float = 30.0):
+        self.targets, self.timeout, self.mem_mb, self.grace = list(targets), timeout, mem_mb, grace
         self.ctx = mp.get_context("spawn")
         self.proc = None
-        self.seeds: List[bytes] = []
+        self.seeds: Dict[str, List[Tuple[str, bytes]]] = {}
         self.start()
 
     def start(self) -> None:
         self.conn, child = self.ctx.Pipe()
-        self.proc = self.ctx.Process(target=_worker, args=(child, self.target, self.timeout, self.mem_mb), daemon=True)
+        self.proc = self.ctx.Process(target=_worker, args=(child, self.targets, self.timeout, self.mem_mb), daemon=True)
         self.proc.start()
         child.close()
         if not self.conn.poll(300):
-            raise RuntimeError(f"the {self.target} worker did not start")
+            raise RuntimeError(f"the worker of {self.targets} did not start")
         self.seeds = self.conn.recv()
 
     def kill(self) -> None:
@@ -551,21 +635,25 @@ class _Pool1:
         if self.proc is not None:
             self.proc.join(10)
 
-    def run(self, k: int, data: bytes) -> Tuple[str, str]:
+    def run(self, target: str, k: int, data: bytes) -> Tuple[str, str]:
+        if self.proc is None:
+            self.start()
         try:
-            self.conn.send((k, data))
-            if self.conn.poll(self.timeout + 30):
+            self.conn.send((target, k, data))
+            if self.conn.poll(self.timeout + self.grace):
                 return self.conn.recv()
-            kind, detail = "hang", f"no answer within {self.timeout + 30:.0f} s"
+            kind, detail = "hang", f"no answer within {self.timeout + self.grace:.0f} s"
         except (EOFError, OSError, BrokenPipeError):
             kind, detail = "crash", ""
         self.kill()
         if kind == "crash":
             detail = f"worker died (exit code {self.proc.exitcode})"
-        self.start()
+        self.proc = None
         return kind, detail
 
     def close(self) -> None:
+        if self.proc is None:
+            return
         try:
             self.conn.send(None)
             self.proc.join(30)
@@ -575,18 +663,26 @@ class _Pool1:
 
 
 def run_target(target: str, n: int, seed: int = 0, timeout: float = 10.0, mem_mb: int = 1024,
-               save: Optional[Path] = None, examples: int = 3) -> Dict[str, object]:
-    """Fuzz ``target`` with ``n`` inputs; returns the counts per kind, the time and a few failure details."""
+               save: Optional[Path] = None, examples: int = 3, grace: float = 30.0,
+               pool: Optional[_Pool1] = None) -> Dict[str, object]:
+    """Fuzz ``target`` with ``n`` inputs; returns the counts per kind, the time and a few failure details.
+
+    ``grace``: seconds past ``timeout`` before a worker that does not answer (the alarm blocked) is killed.
+    ``pool``: a worker holding this target's seeds (shared by several targets); default: one of its own.
+    """
     rng = random.Random(f"{target}-{seed}")
-    pool = _Pool1(target, timeout, mem_mb)
+    own = pool is None
+    pool = _Pool1([target], timeout, mem_mb, grace) if pool is None else pool
+    text_target = TARGETS[target][1] if target in TARGETS else False
     counts = {k: 0 for k in KINDS}
     failures: List[str] = []
     t0 = time.perf_counter()
     try:
         for i in range(n):
-            k = rng.randrange(len(pool.seeds))
-            data = mutate(pool.seeds[k], TARGETS[target][1], rng)
-            kind, detail = pool.run(k, data)
+            k = rng.randrange(len(pool.seeds[target]))
+            name, seed_data = pool.seeds[target][k]
+            data = mutate(seed_data, text_target or name.endswith((".json", ".txt", ".lp")), rng)
+            kind, detail = pool.run(target, k, data)
             counts[kind] += 1
             if kind in ("foreign", "hang", "crash"):
                 if len(failures) < examples:
@@ -597,7 +693,8 @@ def run_target(target: str, n: int, seed: int = 0, timeout: float = 10.0, mem_mb
                     stem.with_suffix(".bin").write_bytes(data)
                     stem.with_suffix(".txt").write_text(f"target {target}, seed file {k}\n{detail}\n")
     finally:
-        pool.close()
+        if own:
+            pool.close()
     return {"target": target, "inputs": n, **counts, "seconds": time.perf_counter() - t0, "failures": failures}
 
 
@@ -610,7 +707,7 @@ def replay(path: Path, target: str, seed_index: Optional[int] = None, timeout: f
     pkg = _package_dir()
     base = Path(tempfile.mkdtemp(prefix=f"torch_hsh_fuzz_replay_{target}_"))
     try:
-        seeds = TARGETS[target][0](base)
+        seeds = _builder(target)(base)
         return _run_one(seeds[seed_index], path.read_bytes(), timeout, pkg)
     finally:
         shutil.rmtree(base, ignore_errors=True)

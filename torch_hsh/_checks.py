@@ -218,3 +218,28 @@ def warn_user(message: str, category: type = UserWarning) -> None:
     while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(pkg):
         frame, level = frame.f_back, level + 1
     warnings.warn(message, category, stacklevel=level)
+
+
+#: Largest decoded size (bytes) a file reader allocates, whatever the file's header claims.
+MAX_DECODED_BYTES = 1 << 34
+#: Largest ratio of decoded bytes to file bytes accepted from a header (deflate reaches 1032; LZW and
+#: run-length coding of constant images a few thousand).
+MAX_EXPANSION = 4096
+
+
+def check_decoded_size(path, nbytes: int, what: str) -> None:
+    """Refuse, before any allocation, a header that claims ``nbytes`` decoded bytes of ``path``.
+
+    ``ValueError`` naming the file if the claim is negative, above :data:`MAX_DECODED_BYTES`, or above
+    1 MiB plus :data:`MAX_EXPANSION` times the file's size (a header no compression can back).
+
+    Example:
+        >>> check_decoded_size(__file__, 1000, "test")
+    """
+    import os
+
+    size = os.path.getsize(path)
+    if nbytes < 0 or nbytes > MAX_DECODED_BYTES or nbytes > (1 << 20) + MAX_EXPANSION * size:
+        raise ValueError(f"{path}: the {what} header claims {nbytes} decoded bytes, more than a {size}-byte "
+                         f"file can hold (limit {MAX_DECODED_BYTES} bytes, {MAX_EXPANSION}x the file size); "
+                         "the file is corrupt")

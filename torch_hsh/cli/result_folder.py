@@ -38,7 +38,7 @@ MANIFEST_VERSION = 1
 def _read_manifest(folder: Path) -> Optional[dict]:
     try:
         meta = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # RecursionError: JSON nested too deeply
         return None
     if not isinstance(meta, dict) or meta.get("format") != MANIFEST_FORMAT or not isinstance(meta.get("files"), dict):
         return None

@@ -55,7 +55,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-from .._checks import check_count, check_shape
+from .._checks import check_count, check_decoded_size, check_shape
 
 __all__ = ["PhotometricDataset", "load_diligent", "save_diligent"]
 
@@ -113,13 +113,16 @@ def _read_png(path: Path) -> np.ndarray:
     """
     path = Path(path)
     width, height, depth, ctype, _interlace = _png_info(path)
+    check_decoded_size(path, width * height * {0: 1, 4: 2, 6: 4}.get(ctype, 3) * (2 if depth == 16 else 1), "PNG")
     if depth in (8, 16) and ctype in _KRS_MODES:
         mode, nch = _KRS_MODES[ctype]
         read = _kornia_rs_png("read", depth)
         try:
             img = np.asarray(read(str(path), mode))
-        except Exception as err:  # kornia_rs raises plain Exception / ValueError / OSError
-            raise ValueError(f"{path}: cannot decode the {depth}-bit PNG ({err})") from err
+        except BaseException as err:  # kornia_rs raises Exception / ValueError / OSError, pyo3 a PanicException
+            if not isinstance(err, Exception) and type(err).__name__ != "PanicException":
+                raise
+            raise ValueError(f"{path}: cannot decode the {depth}-bit PNG ({type(err).__name__}: {err})") from err
         want = np.uint16 if depth == 16 else np.uint8
         if img.dtype != want or img.size != height * width * nch:
             raise ValueError(f"{path}: decoded {img.dtype} array of shape {img.shape}, expected "
@@ -195,6 +198,14 @@ def _read_rows(path: Path, what: str) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64)
 
 
+def _check_file_name(name: str, where: str) -> None:
+    """``ValueError`` (``where``: the file and line) for a name no file system takes: a part over 255 bytes.
+
+    (A NUL byte never gets here: the text reader refuses it as a binary file.)"""
+    if any(len(part.encode("utf-8", "surrogateescape")) > 255 for part in name.replace("\\", "/").split("/")):
+        raise ValueError(f"{where}: image name {name[:80]!r}... is not a file name (a part is longer than 255 bytes)")
+
+
 def _read_names(path: Path) -> List[str]:
     """Image names of ``filenames.txt``: relative paths inside the folder, each listed once."""
     names: List[str] = []
@@ -206,6 +217,7 @@ def _read_names(path: Path) -> List[str]:
         parts = Path(name.replace("\\", "/")).parts
         if Path(name).is_absolute() or name.startswith(("/", "\\")) or ".." in parts:
             raise ValueError(f"{path} line {lineno}: image name {name!r} points outside the folder")
+        _check_file_name(name, f"{path} line {lineno}")
         if name in first_line:
             raise ValueError(f"{path} line {lineno}: image name {name!r} repeats line {first_line[name]}")
         first_line[name] = lineno
@@ -452,7 +464,7 @@ def _read_images(folder: Path, names: Sequence[str], drop_first: int, dtype) -> 
     for i, name in enumerate(names):
         f = folder / name
         if not f.is_file():
-            raise FileNotFoundError(f"{folder}: image {name!r} (number {i + 1 + drop_first}) not found")
+            raise FileNotFoundError(f"{folder}: image {name!r} (number {i + 1 + drop_first}, listed in filenames.txt) not found")
         depth = _png_info(f)[2]
         img = _read_png(f)
         if img.ndim == 3 and img.shape[2] == 4:
@@ -474,9 +486,10 @@ def _read_images(folder: Path, names: Sequence[str], drop_first: int, dtype) -> 
                 )
             images = np.empty((len(names),) + img.shape, dtype=dtype)
         elif img.shape != images.shape[1:]:
-            raise ValueError(f"{f}: image size {img.shape[:2]} differs from the first image's {images.shape[1:3]}")
+            raise ValueError(f"{f}: image size {img.shape[:2]} differs from the first image's {images.shape[1:3]} "
+                             f"({names[0]})")
         elif depth != depth0:
-            raise ValueError(f"{f}: bit depth {depth} differs from the first image's {depth0}")
+            raise ValueError(f"{f}: bit depth {depth} differs from the first image's {depth0} ({names[0]})")
         images[i] = img
     assert images is not None  # at least one name (checked by the caller)
     images /= 65535.0 if depth0 == 16 else 255.0

@@ -27,7 +27,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from .._checks import check_shape
+from .._checks import check_decoded_size, check_shape
 
 __all__ = [
     "read_exr",
@@ -160,6 +160,8 @@ def _open(path, what: str, **kwargs):
     OpenEXR = _openexr()
     path = Path(path)
     _check_existing(path, what)
+    if not kwargs.get("header_only"):
+        _check_exr_size(path, what)
     try:
         f = OpenEXR.File(str(path), **kwargs)
         n_parts = len(f.parts)
@@ -168,6 +170,17 @@ def _open(path, what: str, **kwargs):
     if n_parts == 0:  # the bindings swallow pixel-read errors and return a file without parts
         raise ValueError(f"could not read OpenEXR file {path}: corrupt or truncated pixel data")
     return f
+
+
+def _check_exr_size(path: Path, what: str) -> None:
+    """Refuse a data window whose pixels could not fit in the file, before the bindings allocate them."""
+    with _open(path, what, header_only=True) as f:
+        total = 0
+        for part in f.parts:
+            lo, hi = part.header.get("dataWindow", ((0, 0), (-1, -1)))
+            w, h = int(hi[0]) - int(lo[0]) + 1, int(hi[1]) - int(lo[1]) + 1
+            total += max(w, 0) * max(h, 0) * 4 * len(part.header.get("channels", ()))
+    check_decoded_size(path, total, "OpenEXR")
 
 
 def _read_file(path, what="EXR file"):
@@ -238,8 +251,13 @@ def read_image_stack_exr(path) -> np.ndarray:
         d = layers[key]
         if "" in d:
             out.append(d[""])
-        else:
+        elif len({a.shape for a in d.values()}) == 1:
             out.append(np.stack([d[c] for c in "RGBA" if c in d], axis=-1))
+        else:
+            raise ValueError(f"{path}: the channels of image {key} differ in size (subsampled channels)")
+    if len({a.shape for a in out}) > 1:
+        raise ValueError(f"{path}: the images of the stack differ in size or channels "
+                         f"({sorted({a.shape for a in out})})")
     return np.stack(out, axis=0)
 
 
@@ -337,8 +355,11 @@ def read_coefficient_maps_exr(path) -> Tuple[np.ndarray, List[str], List[str]]:
     hdr = _read_header(path)
     if _COEFF_ATTR not in hdr or _COLOR_ATTR not in hdr:
         raise ValueError(f"{path}: not a coefficient-map EXR (missing header attribute {_COEFF_ATTR!r})")
-    names = str(hdr[_COEFF_ATTR]).split(",")
-    colors = str(hdr[_COLOR_ATTR]).split(",")
+    try:
+        names = str(hdr[_COEFF_ATTR]).split(",")
+        colors = str(hdr[_COLOR_ATTR]).split(",")
+    except UnicodeDecodeError as e:  # the bindings decode string attributes on access
+        raise ValueError(f"{path}: corrupt header: an attribute is not UTF-8 text ({e})") from None
     ch = read_exr(path)
     try:
         planes = [[ch[f"{col}.{nm}"] for nm in names] for col in colors]

@@ -25,6 +25,46 @@ _SAVE_FORMAT = "torch_hsh.HSHResult"
 _SAVE_VERSION = 1
 
 
+def _check_npy_member(p, zf, info) -> None:
+    """Refuse an ``.npy`` member of ``p`` whose header claims more bytes than the member (or the archive) holds."""
+    import numpy as np
+
+    from .._checks import check_decoded_size
+
+    check_decoded_size(p, info.file_size, "zip")
+    with zf.open(info) as f:
+        major, _ = np.lib.format.read_magic(f)
+        read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+        shape, _, dtype = read(f)
+    claimed = math.prod(int(n) for n in shape) * dtype.itemsize
+    if claimed > info.file_size:
+        raise ValueError(f"{p}: member {info.filename} claims {claimed} bytes of {dtype} {shape}, it holds "
+                         f"{info.file_size}")
+
+
+#: The arrays of a saved HSHResult: name -> (trailing dimensions after the pixel shape S, None: not per pixel).
+_SAVED = {"normals": (3,), "coefficients": (-1, -1), "albedo": (-1,), "residual": (), "mask": (), "lights": None,
+          "weights": (-1,), "confidence": (), "mixing": (-1, -1), "depth": (), "basis_brdfs": None}
+
+
+def _check_saved_arrays(p, arrays) -> None:
+    """``ValueError`` naming ``p`` unless the arrays have the shapes and kinds of a saved HSHResult."""
+    missing = [k for k in ("normals", "coefficients", "albedo", "residual", "mask", "lights") if k not in arrays]
+    if missing:
+        raise ValueError(f"{p}: not a saved HSHResult (no {', '.join(missing)})")
+    n = arrays["normals"]
+    S = n.shape[:-1] if n.ndim >= 2 else ()
+    for name, v in arrays.items():
+        if name not in _SAVED:
+            continue
+        tail = _SAVED[name]
+        want = (-1, 3) if name == "lights" else ((-1, -1) if tail is None else S + tail)
+        kind = "b" if name == "mask" else "f"
+        if v.dtype.kind != kind or v.ndim != len(want) or any(w not in (-1, g) for w, g in zip(want, v.shape)):
+            raise ValueError(f"{p}: corrupt HSHResult: {name} is {v.dtype} {v.shape}, expected "
+                             f"{'bool' if kind == 'b' else 'float'} ({', '.join('*' if w < 0 else str(w) for w in want)})")
+
+
 @dataclass
 class HSHResult:
     """Output of :func:`solve_hsh`.
@@ -154,21 +194,32 @@ class HSHResult:
         if magic != b"PK\x03\x04":  # every .npz is a zip archive; a .npy, a .json or a text file is not
             raise ValueError(f"{p}: not a saved HSHResult (not an .npz archive; give a result folder or its result.npz)")
         try:
+            with zipfile.ZipFile(p) as zf:  # every header checked before numpy allocates what it claims
+                for member in zf.infolist():
+                    _check_npy_member(p, zf, member)
             with np.load(p, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
             meta = json.loads(bytes(arrays.pop("metadata")).decode("utf-8"))
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        except Exception as e:  # zipfile and numpy raise many kinds (BadZipFile, TokenError, NotImplementedError, ...)
             raise ValueError(f"{p}: not a saved HSHResult ({type(e).__name__}: {e})") from e
-        if meta.get("format") != _SAVE_FORMAT:
-            raise ValueError(f"{p}: not a saved HSHResult (format {meta.get('format')!r})")
-        if int(meta.get("version", 0)) > _SAVE_VERSION:
+        if not isinstance(meta, dict) or meta.get("format") != _SAVE_FORMAT:
+            got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+            raise ValueError(f"{p}: not a saved HSHResult (format {got!r})")
+        version, order = meta.get("version", 0), meta.get("order")
+        if not isinstance(version, int) or not isinstance(order, int) or isinstance(order, bool) or order < 0:
+            raise ValueError(f"{p}: corrupt HSHResult metadata (version {version!r}, order {order!r})")
+        if version > _SAVE_VERSION:
             raise ValueError(f"{p}: format version {meta['version']} is newer than this library's {_SAVE_VERSION}")
-        t = {k: torch.from_numpy(v).to(device) for k, v in arrays.items()}
+        _check_saved_arrays(p, arrays)
+        try:
+            t = {k: torch.from_numpy(v).to(device) for k, v in arrays.items()}
+            runtime, info = float(meta.get("runtime_s", 0.0)), dict(meta.get("info", {}))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{p}: corrupt HSHResult ({type(e).__name__}: {e})") from e
         S = tuple(t["normals"].shape[:-1])
         w = t.get("weights", torch.zeros(*S, 0, dtype=t["normals"].dtype, device=device))
         return cls(normals=t["normals"], coefficients=t["coefficients"], albedo=t["albedo"], residual=t["residual"],
-                   weights=w, mask=t["mask"], order=int(meta["order"]), lights=t["lights"],
-                   runtime_s=float(meta.get("runtime_s", 0.0)), info=dict(meta.get("info", {})),
+                   weights=w, mask=t["mask"], order=order, lights=t["lights"], runtime_s=runtime, info=info,
                    basis_brdfs=t.get("basis_brdfs"), mixing=t.get("mixing"), confidence=t.get("confidence"),
                    depth=t.get("depth"))
 

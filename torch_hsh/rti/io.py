@@ -83,8 +83,8 @@ import numpy as np
 import torch
 
 from .._atomic import atomic_file, staged_folder, sweep
-from .._checks import check_shape
-from ..io.diligent import PhotometricDataset, _output_folder, _read_png, _read_text, _to_numpy, _write_png
+from .._checks import check_decoded_size, check_shape
+from ..io.diligent import PhotometricDataset, _check_file_name, _output_folder, _read_png, _read_text, _to_numpy, _write_png
 
 __all__ = [
     "read_lp",
@@ -221,6 +221,7 @@ def read_lp(path, check_directions: bool = True) -> Tuple[List[str], List[Path],
                 raise ValueError(f"{lp} line {lineno}: light below the horizon (z = {v[2]:.4g} <= 0; "
                                  "z points toward the camera)")
             lights[k] = v
+        _check_file_name(parts[0], f"{lp} line {lineno}")
         names.append(parts[0])
         paths.append(_resolve_image(parts[0], lp))
     return names, paths, lights
@@ -309,8 +310,10 @@ def read_image(path) -> Tuple[np.ndarray, int]:
         from PIL import Image
 
         try:
-            with Image.open(p) as im:
+            with Image.open(p) as im:  # the header only: the size is checked before the pixels are decoded
                 mode = im.mode
+                depth = 2 if "16" in mode else (4 if mode in ("I", "F") else 1)
+                check_decoded_size(p, im.size[0] * im.size[1] * max(3, len(im.getbands())) * depth, im.format or "image")
                 if mode in ("I;16", "I;16B", "I;16L", "I"):
                     a = np.asarray(im).astype(np.uint16) if mode != "I" else np.asarray(im)
                 elif mode in ("RGB", "L", "RGBA"):
@@ -320,6 +323,8 @@ def read_image(path) -> Tuple[np.ndarray, int]:
                 else:
                     raise ValueError(f"unsupported image mode {mode!r} (use 8/16-bit RGB or grey)")
         except ValueError as err:
+            if str(err).startswith(str(p)):
+                raise
             raise ValueError(f"{p}: cannot read the image ({err})") from None
         except Exception as err:  # Pillow raises UnidentifiedImageError / OSError / SyntaxError
             raise ValueError(f"{p}: cannot decode the image ({type(err).__name__}: {err})") from None
@@ -361,7 +366,7 @@ def _read_photographs(paths: Sequence[Path], missing: Callable[[int, Path], str]
             raise ValueError(f"{f}: image size {img.shape[1]}x{img.shape[0]} (WxH) differs from the first image's "
                              f"{shape0[1]}x{shape0[0]} ({paths[0].name})")
         elif bits != bits0:
-            raise ValueError(f"{f}: bit depth {bits} differs from the first image's {bits0}")
+            raise ValueError(f"{f}: bit depth {bits} differs from the first image's {bits0} ({paths[0].name})")
         img = img if convert is None else convert(img)
         if images is None:
             images = np.empty((len(paths),) + img.shape, dtype=dtype)
