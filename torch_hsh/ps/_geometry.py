@@ -40,13 +40,30 @@ def angular_error(
 
 
 def tangent_frame(n: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Two unit tangents orthogonal to unit normals ``n (N, 3)`` (Duff et al. 2017, branchless)."""
+    """Two unit tangents ``(t1, t2)`` orthogonal to unit normals ``n (N, 3)``, each ``(N, 3)``: the azimuthal frame.
+
+    ``t1 = normalize(z x n) = (-sin phi, cos phi, 0)`` follows the azimuth ``phi`` of ``n`` and
+    ``t2 = n x t1``, so ``(t1, t2, n)`` is right-handed. Convention: the frame is **covariant under
+    rotations about the view axis** ``z``: for such a rotation ``R``, ``tangent_frame(R n) = (R t1, R t2)``.
+    The solvers' steps, forward differences, damping and cone of candidates are taken in this frame, so
+    rotating the lights and the scene about the view axis rotates the recovered normals. At the pole
+    (``n_x = n_y = 0``, where no frame can be covariant) the frame is ``t1 = (0, 1, 0)``, the ``phi = 0`` limit.
+
+    Example:
+        >>> n = torch.nn.functional.normalize(torch.tensor([[0.3, 0.4, 0.8]]), dim=-1)
+        >>> R = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 deg about z
+        >>> (t1, t2), (r1, r2) = tangent_frame(n), tangent_frame(n @ R.T)
+        >>> torch.allclose(r1, t1 @ R.T), torch.allclose(r2, t2 @ R.T)
+        (True, True)
+    """
     x, y, z = n.unbind(-1)
-    sign = torch.where(z >= 0, 1.0, -1.0).to(z.dtype)
-    a = -1.0 / (sign + z)
-    b = x * y * a
-    t1 = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], dim=-1)
-    t2 = torch.stack([b, sign + y * y * a, -y], dim=-1)
+    r = torch.hypot(x, y)
+    pole = r == 0
+    r = torch.where(pole, torch.ones_like(r), r)
+    c = torch.where(pole, torch.ones_like(r), x / r)
+    s = torch.where(pole, torch.zeros_like(r), y / r)
+    t1 = torch.stack([-s, c, torch.zeros_like(s)], dim=-1)
+    t2 = torch.stack([-z * c, -z * s, x * c + y * s], dim=-1)  # n x t1
     return t1, t2
 
 
