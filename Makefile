@@ -26,7 +26,7 @@ MUTATION_STAMP := $(VENV)/.torch_hsh_mutation_installed
 # Docstring examples to skip (none at present).
 DOCTEST_DESELECT ?=
 
-.PHONY: demo test test-fast test-lowest research-test doctest docs lint bench mutate env clean
+.PHONY: demo test test-fast test-lowest research-test doctest docs lint bench mutate mutate-sample env clean
 
 # torch first, then the package and the demo's one extra.
 $(BASE_STAMP): pyproject.toml setup.py
@@ -96,6 +96,11 @@ $(MUTATION_STAMP): $(STAMP) pyproject.toml
 # has 2397 mutants: about 5 h on 2 loaded cores (0.12 mutants/s); 440 of them took 48 min. ARGS="kernel" runs one module, ARGS="kernel --max-children 2".
 mutate: $(MUTATION_STAMP)
 	$(PY) tools/mutate.py $(ARGS)
+
+# A sampled mutation score with its Wilson 95 % interval (tools/mutation_sample.py; same scratch copies and cache):
+# ARGS="ps_optim --sample 60 --seed 1 --max-children 1"; ARGS="... --retest" after new tests.
+mutate-sample: $(MUTATION_STAMP)
+	$(PY) tools/mutation_sample.py $(ARGS)
 
 # The basis benchmark (benchmarks/README.md lists the others, run the same way).
 bench: $(BENCH_STAMP)
