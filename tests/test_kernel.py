@@ -539,6 +539,8 @@ def test_bad_tensors():
             hsh(x, 2)
         with pytest.raises(ValueError, match="wo"):
             helmholtz_isotropic(d, x, 2)
+        with pytest.raises(ValueError, match="`wo`"):
+            helmholtz_anisotropic(d, x, 1)
         with pytest.raises(ValueError, match="normal"):
             helmholtz_isotropic_world(d, d, x, 2)
     with pytest.raises(ValueError, match="wo"):

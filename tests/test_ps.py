@@ -347,6 +347,74 @@ def test_safe_cholesky_jitters_only_the_failing_matrices():
     assert torch.allclose(L[2] @ L[2].T, bad[2], atol=1e-6)
 
 
+@pytest.mark.parametrize("M", [1, 2, 3, 5])
+def test_small_solve_solves_spd_systems_of_every_size(M):
+    from torch_hsh.ps.optim import small_solve
+
+    g = torch.Generator().manual_seed(M)
+    A = torch.randn(6, M, M, generator=g, dtype=DT)
+    G = A @ A.transpose(1, 2) + 0.5 * torch.eye(M, dtype=DT)
+    rhs = torch.randn(6, M, 3, generator=g, dtype=DT)
+    x = small_solve(G, rhs)
+    assert x.shape == rhs.shape and torch.allclose(G @ x, rhs, atol=1e-10)
+
+
+def test_solve_weights_of_a_pixel_without_observations_are_zero():
+    from torch_hsh.ps.optim import _ridge_diag, solve_weights
+
+    g = torch.Generator().manual_seed(0)
+    for M in (1, 3):
+        Psi, y = torch.randn(2, M, 9, generator=g, dtype=DT), torch.randn(2, 3, 9, generator=g, dtype=DT)
+        w = torch.ones(2, 9, dtype=DT)
+        w[1] = 0.0  # every observation of pixel 1 masked: the ridge alone defines its weights
+        W = solve_weights(Psi, w, y, _ridge_diag(Psi, w, 1e-3))[0]
+        assert torch.isfinite(W).all() and torch.equal(W[1], torch.zeros_like(W[1]))
+
+
+def test_cone_candidates_lie_on_evenly_spread_rings():
+    from torch_hsh.ps.optim import _cone_candidates
+
+    n0 = torch.nn.functional.normalize(torch.randn(7, 3, generator=torch.Generator().manual_seed(0), dtype=DT), dim=-1)
+    cands = _cone_candidates(n0, (10.0, 25.0), 6)
+    assert len(cands) == 12
+    for r, ang in enumerate((10.0, 25.0)):
+        ring = torch.stack(cands[6 * r:6 * r + 6])
+        assert torch.allclose(ring.norm(dim=-1), torch.ones(6, 7, dtype=DT))
+        assert torch.allclose((ring * n0).sum(-1), torch.full((6, 7), math.cos(math.radians(ang)), dtype=DT))
+        assert torch.allclose(ring.sum(0), 6 * math.cos(math.radians(ang)) * n0)  # azimuths evenly spread
+
+
+def test_lm_accept_bounds_the_damping():
+    from torch_hsh.ps.optim import lm_accept
+
+    idx = torch.arange(2)
+    n = torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=DT)
+    cost, mu = torch.tensor([1.0, 1.0], dtype=DT), torch.tensor([1e9, 1e-9], dtype=DT)
+    active = torch.ones(2, dtype=torch.bool)
+    acc = lm_accept(idx, n, cost, mu, active, n.clone(), n.clone(), torch.tensor([2.0, 0.5], dtype=DT),
+                    torch.full((2, 1), 1.0, dtype=DT), 1e-5)
+    assert acc.tolist() == [False, True] and cost.tolist() == [1.0, 0.5]
+    assert mu.tolist() == [1e9, 1e-9]  # rejected at the cap, accepted at the floor: the damping stays in [1e-9, 1e9]
+    assert active.tolist() == [False, True]
+
+
+def test_lm_independent_steps_at_most_max_step():
+    from torch_hsh.ps.design import ridge_profile
+    from torch_hsh.ps.optim import PixelProblem, lm_independent
+
+    n, l = _scene(60, 24, 23)
+    img = render(n, l, Lambertian(torch.full((60, 3), 0.5, dtype=DT)))
+    ch = PixelProblem(img.permute(1, 0, 2), torch.ones(60, 24, dtype=DT), l, torch.tensor([0.0, 0.0, 1.0], dtype=DT),
+                      1, ridge_profile(1, DT, "cpu"), 1e-3)
+    start = torch.nn.functional.normalize(n + 0.6 * torch.randn(n.shape, generator=torch.Generator().manual_seed(1),
+                                                                dtype=DT), dim=-1)
+    ch.set_ridge_scale(start)
+    moved = ps.angular_error(lm_independent(ch, start, 1, max_step=0.05)[0], start)  # degrees
+    cap = math.degrees(math.atan(0.05))
+    assert (moved <= cap + 1e-6).all()
+    assert (moved > cap - 1e-6).float().mean() > 0.8  # far from the optimum, most steps are capped
+
+
 def _quick_specular_problem():
     """40 pixels of a white-lobed Blinn-Phong material, 16 lights, and solver options for a quick calibration."""
     n, l = _scene(40, 16, 11)
