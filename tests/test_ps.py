@@ -184,18 +184,8 @@ def test_bad_inputs_give_clear_errors():
         ps.solve_hsh(img[..., 0], l)
     with pytest.raises(ValueError, match="mask"):
         ps.solve_hsh(img, l, mask=torch.ones(11, dtype=torch.bool))
-    with pytest.warns(UserWarning, match=r"8 of the 8 `lights` are at or below the horizon"):
+    with pytest.warns(UserWarning, match=r"8 of the 8 `lights` are at or below the horizon.*light only normals that face"):
         ps.lambertian_ls(img, -l)  # a flipped frame is said (the loaders refuse such lights)
-    # one call that reads the lights several times (fit and held-out check) says it once, at the caller's line
-    import warnings
-
-    flipped = l.clone()
-    flipped[0, 2] = -flipped[0, 2]
-    with warnings.catch_warnings(record=True) as seen:
-        warnings.simplefilter("default")
-        ps.holdout_evaluation(img, flipped, holdout=2, seed=0, order=1)
-    horizon = [w for w in seen if "below the horizon" in str(w.message)]
-    assert len(horizon) == 1 and horizon[0].filename == __file__, [(w.filename, str(w.message)) for w in seen]
     # the two layout mistakes name the layout: lights on another axis, grey images without a channel axis
     img4 = img.reshape(8, 2, 5, img.shape[-1])
     with pytest.raises(ValueError, match=r"\(L, H, W, C\) .* \(if its axis 2, of size 8, holds the lights, move it first\)"):
@@ -210,10 +200,29 @@ def test_bad_inputs_give_clear_errors():
         ps.holdout_evaluation(img, l, holdout=6)
     with pytest.raises(ValueError, match="intensities"):
         ps.robust_lambertian(img, l, intensities=torch.ones(5, dtype=DT))
+    with pytest.raises(ValueError, match="intensities"):
+        ps.robust_lambertian(img, l, intensities=torch.ones(5, 3, dtype=DT))
+    with pytest.raises(ValueError, match="`lights` contains a zero-length direction"):
+        ps.solve_hsh(img, torch.cat([l[:7], torch.zeros(1, 3, dtype=DT)]))
     with pytest.raises(ValueError, match="drop_dark"):
         ps.robust_lambertian(img, l, drop_dark=0.7, drop_bright=0.5)
     with pytest.raises(TypeError, match="order"):
         ps.solve_hsh(img, l, order=2.5)
+
+
+def test_horizon_warning_is_said_once_at_the_callers_line():
+    """One call that reads the lights several times (fit and held-out check) says it once, at the caller's line."""
+    import warnings
+
+    n, l = _scene(10, 8)
+    img = render(n, l, Lambertian(0.5))
+    flipped = l.clone()
+    flipped[0, 2] = -flipped[0, 2]
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("default")
+        ps.holdout_evaluation(img, flipped, holdout=2, seed=0, order=1)
+    horizon = [w for w in seen if "below the horizon" in str(w.message)]
+    assert len(horizon) == 1 and horizon[0].filename == __file__, [(w.filename, str(w.message)) for w in seen]
 
 
 @pytest.mark.parametrize("order", [0, 1, 2, 3, 5])
@@ -271,6 +280,10 @@ def test_noise_estimate_ignores_object_pixels_left_outside_the_mask():
         d = prepare_inputs(img, l, mask=m)
         _, info = ps.observation_weights(d.y, d.y * d.intensities, d.background)
         assert 0.7 * sigma < info["noise_sigma"] < 1.4 * sigma, info["noise_sigma"]
+    bg = d.background.clone()
+    bg[:3] = float("nan")  # non-finite background rows are left out of the estimate
+    assert ps.observation_weights(d.y, d.y * d.intensities, bg)[1]["noise_sigma"] == pytest.approx(
+        ps.observation_weights(d.y, d.y * d.intensities, d.background[3:])[1]["noise_sigma"], rel=1e-12)
 
 
 def test_a_lit_background_is_reported_not_silently_used_as_noise():
@@ -627,3 +640,34 @@ def test_holdout_evaluation_has_one_path():
 
     assert not hasattr(result, "holdout_evaluation")  # one name per thing: torch_hsh.ps.holdout_evaluation
     assert not hasattr(ps, "hsh")  # the solver is torch_hsh.ps.solve_hsh
+
+
+def test_sample_quantile_and_sigma_helpers(monkeypatch):
+    from torch_hsh.ps import observations as obs
+
+    s = obs.strided_sample(torch.arange(100), 7)
+    assert s[0] == 0 and s[-1] == 99 and len(s) == 7 and (s.diff() >= 16).all()  # first and last, evenly spread
+    assert obs.robust_sigma(torch.zeros(0)) == 0.0
+    g = torch.randn(20000, generator=torch.Generator().manual_seed(0), dtype=DT)
+    assert abs(obs.robust_sigma(3.0 * g) - 3.0) < 0.1  # the MAD estimate of a Gaussian's sigma
+    x = torch.rand(7, 5, generator=torch.Generator().manual_seed(1), dtype=DT)
+    ref = torch.quantile(x, 0.3, dim=1, keepdim=True)
+    assert torch.equal(obs.row_quantile(x, 0.3), ref)
+    monkeypatch.setattr(obs, "QUANTILE_MAX_ELEMENTS", 10)  # two rows per chunk: the chunked path
+    assert torch.equal(obs.row_quantile(x, 0.3), ref)
+    assert obs._dark_background(torch.zeros(4, 0, 3)).shape == (0, 3)  # no background pixel
+
+
+def test_observe_reports_saturation_and_invalid_fractions():
+    from torch_hsh.ps.observations import observe
+
+    L, S = 12, 8
+    n, l = _scene(S * S, L, 32)
+    img = render(n, l, Lambertian(torch.full((S * S, 3), 0.7, dtype=DT))).reshape(L, S, S, 3)
+    img = img.clamp(max=0.15)  # a plateau: saturated
+    img[0, 0, 0] = float("nan")  # one invalid observation
+    info = observe(img, l, None, None, ps.Settings(noise_sigma=0.0)).info
+    sat = float((img.amax(-1) >= 0.15).sum()) / (S * S * L)
+    assert info["saturation_level"] == pytest.approx(0.15) and 0 < sat and info["saturated_fraction"] == pytest.approx(sat, rel=0.1)
+    assert info["invalid_fraction"] == pytest.approx(1 / (S * S * L))
+    assert observe(img, l, None, None, ps.Settings(noise_sigma=0.0)).weights.dtype == DT  # the data's dtype
