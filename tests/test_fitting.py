@@ -203,6 +203,8 @@ def test_parseval_and_brdf_energy():
     assert torch.allclose(F.project(bandlimited(a, 1, ISO), 1, ISO, tol=None), a, atol=1e-12)
     b = rand_coefficients(ANI, 1, seed=8)  # the full (not reduced) fixed rule, in several chunks
     assert torch.allclose(F.project(bandlimited(b, 1, ANI), 1, ANI, tol=None, chunk_size=50), b, atol=1e-12)
+    e = F.brdf_energy(bandlimited(b, 1, ANI), 1, ANI, tol=None, chunk_size=50)
+    assert abs(float(e) - float((b * b).sum())) < 1e-11 * float(e)
     with pytest.raises(ValueError, match="`n_samples` must be a positive integer"):
         F.project(bandlimited(b, 1, ANI), 1, ANI, method="monte_carlo", n_samples=0)
 
