@@ -671,3 +671,11 @@ def test_observe_reports_saturation_and_invalid_fractions():
     assert info["saturation_level"] == pytest.approx(0.15) and 0 < sat and info["saturated_fraction"] == pytest.approx(sat, rel=0.1)
     assert info["invalid_fraction"] == pytest.approx(1 / (S * S * L))
     assert observe(img, l, None, None, ps.Settings(noise_sigma=0.0)).weights.dtype == DT  # the data's dtype
+
+
+def test_observation_weights_drop_each_pixels_own_dark_observations():
+    y = torch.rand(4, 10, 3, generator=torch.Generator().manual_seed(2), dtype=DT) + 0.5
+    y[:2] *= 10.0  # two bright pixels: "dark" is relative to each pixel's own brightness
+    y[1, 3] = 0.01  # one dark observation of a bright pixel
+    w, info = ps.observation_weights(y, y, noise_sigma=0.0)
+    assert w[1, 3] == 0 and w.sum() == 4 * 10 - 1 and info["dark_fraction"] == pytest.approx(1 / 40)
