@@ -24,7 +24,8 @@ survivors' names; ``mutmut show NAME`` inside that folder prints a survivor's di
     python tools/mutation_sample.py ps_optim --sample 100 --seed 1 --retest   # after adding tests
 
 A mutant already judged keeps its verdict (mutmut's cache) unless ``--retest`` names the sample's
-non-killed mutants again.
+non-killed mutants again; ``--retest`` also drops mutmut's test-to-function map, which it would otherwise
+keep for every test it has seen, changed or not.
 """
 from __future__ import annotations
 
@@ -121,6 +122,8 @@ def generate(work: Path, max_children: int) -> Dict[str, str]:
 
 def run_module(name: str, n: int, seed: int, max_children: int, retest: bool, command: str) -> Dict[str, object]:
     work = prepare(name)
+    if retest:  # mutmut re-maps only new tests to the functions they call: a changed test keeps its old map
+        (work / "mutants" / "mutmut-stats.json").unlink(missing_ok=True)
     t0 = time.perf_counter()
     before = generate(work, max_children)
     chosen = sample_names(before, n, seed)
