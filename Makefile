@@ -26,7 +26,7 @@ MUTATION_STAMP := $(VENV)/.torch_hsh_mutation_installed
 # Docstring examples to skip (none at present).
 DOCTEST_DESELECT ?=
 
-.PHONY: demo test test-fast test-lowest research-test doctest docs lint bench mutate kill fuzz env clean
+.PHONY: demo test test-fast test-lowest research-test doctest docs lint bench mutate mutate-sample kill fuzz env clean
 
 # torch first, then the package and the demo's one extra.
 $(BASE_STAMP): pyproject.toml setup.py
@@ -110,6 +110,11 @@ kill: $(BASE_STAMP)
 FUZZ_INPUTS ?= 8500
 fuzz: $(STAMP)
 	OMP_NUM_THREADS=1 nice -n 10 $(PY) tools/fuzz.py -n $(FUZZ_INPUTS) --json build/fuzz/results.json $(ARGS)
+
+# A sampled mutation score with its Wilson 95 % interval (tools/mutation_sample.py; same scratch copies and cache):
+# ARGS="ps_optim --sample 60 --seed 1 --max-children 1"; ARGS="... --retest" after new tests.
+mutate-sample: $(MUTATION_STAMP)
+	$(PY) tools/mutation_sample.py $(ARGS)
 
 # The basis benchmark (benchmarks/README.md lists the others, run the same way).
 bench: $(BENCH_STAMP)

@@ -184,3 +184,17 @@ def test_bad_arguments_name_themselves(tmp_path):
     # too few samples for the order: the message says what to pass
     with pytest.raises(ValueError, match="ridge"):
         fit_merl(tabulate_merl(Lambertian(0.5), shape=(2, 2, 2)), 4)
+
+
+def test_ill_conditioned_normal_equations_are_refused_even_when_cholesky_succeeds():
+    from types import SimpleNamespace
+
+    from torch_hsh.io.merl import _solve_orders
+
+    G = torch.diag(torch.tensor([1.0, 1e-14], dtype=torch.float64)).unsqueeze(0)  # positive definite, condition 1e14
+    S = SimpleNamespace(G=G, rhs=torch.ones(3, 2, dtype=torch.float64), nused=torch.tensor([5, 5, 5]))
+    sel = torch.ones(2, dtype=torch.bool)
+    with pytest.raises(ValueError, match="ill-conditioned.*ridge > 0"):
+        _solve_orders(S, 0.0, torch.tensor([0, 1]), sel)
+    a, cond = _solve_orders(S, 1e-3, torch.tensor([0, 1]), sel)
+    assert cond < 1e4 and torch.isfinite(a).all()

@@ -136,6 +136,9 @@ def test_projection_channels_chunking_float32():
     a = rand_coefficients(ISO, 2, seed=2, channels=3)
     f = bandlimited(a, 2, ISO)
     got = F.project(f, 2, chunk_size=37)
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="chunk_size"):
+            F.project(f, 2, tol=None, chunk_size=bad)  # the fixed rule evaluates in chunks
     assert got.shape == (3, 10)
     assert float((got - a).abs().max()) < 1e-12
     got32 = F.project(f, 2, dtype=torch.float32)
@@ -192,6 +195,18 @@ def test_parseval_and_brdf_energy():
     a = rand_coefficients(ISO, 1, seed=9, channels=2)
     e = F.brdf_energy(bandlimited(a, 1, ISO), 1)
     assert e.shape == (2,) and torch.allclose(e, (a * a).sum(-1), rtol=1e-12)
+    # a fixed rule (tol=None: the default sizes, or n_phi given) is evaluated once, without refinement
+    for kw, n_phi in (({"tol": None}, 6), ({"n_phi": 32}, 32)):
+        e, info = F.brdf_energy(bandlimited(a, 1, ISO), 1, return_info=True, **kw)
+        assert torch.allclose(e, (a * a).sum(-1), rtol=1e-12) and info["evaluations"] is None
+        assert info["n_phi"] == n_phi
+    assert torch.allclose(F.project(bandlimited(a, 1, ISO), 1, ISO, tol=None), a, atol=1e-12)
+    b = rand_coefficients(ANI, 1, seed=8)  # the full (not reduced) fixed rule, in several chunks
+    assert torch.allclose(F.project(bandlimited(b, 1, ANI), 1, ANI, tol=None, chunk_size=50), b, atol=1e-12)
+    e = F.brdf_energy(bandlimited(b, 1, ANI), 1, ANI, tol=None, chunk_size=50)
+    assert abs(float(e) - float((b * b).sum())) < 1e-11 * float(e)
+    with pytest.raises(ValueError, match="`n_samples` must be a positive integer"):
+        F.project(bandlimited(b, 1, ANI), 1, ANI, method="monte_carlo", n_samples=0)
 
 
 def test_monte_carlo_projection_converges_and_is_seeded():
@@ -246,6 +261,8 @@ def test_normal_exitance_matches_full_isotropic_projection():
     a = F.project_normal_exitance(g, P, n_theta=nt)
     iso = F.project(lambda wi, wo: g(wi[:, 2]), P, n_theta=nt, n_phi=9)
     assert float((iso - F.normal_exitance_to_isotropic(a)).abs().max()) < 1e-12
+    two = F.normal_exitance_to_isotropic(torch.stack([a, 2 * a]))  # leading dimensions are kept
+    assert two.shape == (2, iso.shape[-1]) and torch.allclose(two[1], 2 * F.normal_exitance_to_isotropic(a))
     # written out: a_0 = sqrt(2 pi) b_0, a_p = sqrt(pi) b_p with b the orthonormal 1-D coefficients
     b = F.project_normal_exitance(g, P, n_theta=nt, normalization="hsh")
     assert torch.allclose(a[0], math.sqrt(2 * math.pi) * b[0], rtol=1e-14)
@@ -360,6 +377,8 @@ def test_energy_accuracy_monotone_and_one_for_bandlimited():
         F.energy_accuracy(a, torch.tensor([1.0, -1.0], dtype=D))
     with pytest.raises(ValueError, match="matches no order"):
         F.energy_accuracy(torch.ones(5, dtype=D), 1.0)
+    with pytest.raises(ValueError, match=r"coefficients\[\.\.\., K\].*total_energy"):
+        F.energy_accuracy(a, torch.ones(3, dtype=D))
 
 
 # ----------------------------------------------------------------------------- least squares
@@ -475,9 +494,10 @@ def test_fit_float32_promoted_to_float64():
     a = rand_coefficients(ISO, P, seed=18)
     wi, wo = rand_dirs(N, 80), rand_dirs(N, 81)
     y = F.reconstruct(a, wi, wo)
-    got = F.fit(wi.float(), wo.float(), y.float(), P)
+    got, info = F.fit(wi.float(), wo.float(), y.float(), P, return_info=True)
     assert got.dtype == torch.float32
     assert float((got.double() - a).abs().max()) < 1e-4
+    assert all(info[k].dtype == torch.float32 for k in ("residuals", "rms", "relative_residual"))  # like the data
 
 
 def test_fit_bad_inputs():
@@ -487,6 +507,9 @@ def test_fit_bad_inputs():
         F.fit(wi, wo, y, 1, ridge=-1.0)
     with pytest.raises(ValueError, match="ridge_growth"):
         F.fit(wi, wo, y, 1, ridge=1.0, ridge_growth=-1.0)
+    for bad in (True, float("inf"), "1e-3"):
+        with pytest.raises(ValueError, match="ridge"):
+            F.fit(wi, wo, y, 1, ridge=bad)
     with pytest.raises(ValueError, match="NaN"):
         F.fit(wi, wo, torch.full((50,), float("nan"), dtype=D), 1)
     with pytest.raises(ValueError, match="does not match"):
@@ -533,6 +556,10 @@ def test_directional_albedo_lambertian_generic_fallback_and_horizon():
     r = rand_coefficients(ISO, 3, seed=21)
     generic = F.directional_albedo(r, wo, basis=_Wrapped(ISO))  # quadrature path
     assert torch.allclose(generic, F.directional_albedo(r, wo), atol=1e-12)
+    with pytest.raises(TypeError, match="`wo` has dtype torch.float32 but `coefficients`"):
+        F.directional_albedo(r, wo.float())
+    with pytest.raises(TypeError, match="`coefficients`"):
+        F.directional_albedo(r.tolist(), wo)
 
 
 class _SphereProduct(Basis):
@@ -628,7 +655,8 @@ def test_budget_exhaustion_raises_with_estimate_and_strict_false_warns():
         F.project(f, 4, max_evaluations=100_000)
     e = ei.value
     assert 1e-3 < e.estimate < float("inf") and e.result is not None and not e.info["converged"]
-    assert "max_evaluations" in str(e)
+    assert "max_evaluations" in str(e) and "n_theta was not yet checked" in str(e)
+    assert f"{100_000 - e.info['evaluations']} are left" in str(e)  # the budget left, in evaluations
     with pytest.warns(F.ConvergenceWarning):
         a, info = F.project(f, 4, max_evaluations=100_000, strict=False, return_info=True)
     assert a.shape == (35,) and info["error_estimate"] == pytest.approx(e.estimate)

@@ -402,7 +402,7 @@ def test_load_errors(tmp_path):
     ("0 0.6 0.8\n1 0 0\n0 -0.6 0.8\n", "row 2 has z = 0 <= 0"),
     ("0 0.6 0.8\n0 0.6 0.8\n0 0.6 0.8\n", "fewer than 3 dimensions"),  # identical
     ("0 0.6 0.8\n0 0 1\n0 -0.6 0.8\n", "fewer than 3 dimensions"),  # coplanar with the view (y-z plane)
-    ("0.6 0 0.8\n0 0.6 0.8\n0.331295 0.331295 0.883452\n", "fewer than 3 dimensions"),  # a+b in span(a, b)
+    ("0.6 0 0.8\n0 0.6 0.8\n0.331295 0.331295 0.883452\n", "fewer than 3 dimensions.*3 non-coplanar lights$"),
 ])  # fmt: skip
 def test_load_rejects_degenerate_lights(tmp_path, rows, msg):
     _handmade_folder(tmp_path / "o")
@@ -459,6 +459,18 @@ def test_save_clips_with_warning(tmp_path):
             save_diligent(tmp_path / "o", images, lights, scale=1.0)
     d = load_diligent(tmp_path / "o")
     assert float(d.images.max()) == 1.0 and float(d.images.min()) == 0.0
+
+
+def test_save_all_black_images(tmp_path):
+    images, lights, _, _, _ = _random_scene()
+    save_diligent(tmp_path / "o", torch.zeros_like(images), lights)
+    assert (load_diligent(tmp_path / "o").images == 0).all()
+
+
+def test_png_writer_rejects_bad_shapes(tmp_path):
+    for shape in [(4, 4, 2), (4, 4, 5), (4,)]:
+        with pytest.raises(ValueError, match="PNG data must have shape"):
+            _write_png(tmp_path / "x.png", np.zeros(shape, np.uint8))
 
 
 def test_save_8bit(tmp_path):
@@ -520,6 +532,8 @@ def test_save_argument_errors(tmp_path):
         save_diligent(p, images, lights, mask=mask[:2])
     with pytest.raises(ValueError, match="normals_gt"):
         save_diligent(p, images, lights, normals_gt=normals[..., :2])
+    with pytest.raises(ValueError, match="normals_gt"):  # H and W must be the images'
+        save_diligent(p, images, lights, normals_gt=normals[1:])
     with pytest.raises(ValueError, match="bit_depth"):
         save_diligent(p, images, lights, bit_depth=12)
     with pytest.raises(ValueError, match="scale"):

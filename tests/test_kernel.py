@@ -539,6 +539,8 @@ def test_bad_tensors():
             hsh(x, 2)
         with pytest.raises(ValueError, match="wo"):
             helmholtz_isotropic(d, x, 2)
+        with pytest.raises(ValueError, match="`wo`"):
+            helmholtz_anisotropic(d, x, 1)
         with pytest.raises(ValueError, match="normal"):
             helmholtz_isotropic_world(d, d, x, 2)
     with pytest.raises(ValueError, match="wo"):
@@ -1010,3 +1012,4 @@ def test_chunks_of_several_rows_with_a_partial_last_chunk(tiny_chunks):
     (g_plain,) = torch.autograd.grad((hsh(x, P) * w).sum(), x)
     torch.testing.assert_close(g_chunk, g_plain, rtol=1e-12, atol=1e-12)
     assert bool((g_chunk[39] == 0).all()) and bool((g_chunk[35:39] != 0).any())
+

@@ -250,8 +250,12 @@ def test_bad_tables_and_options(tmp_path):
         MERLBRDF(torch.full((3, 2, 2, 2), float("nan")))
     with pytest.raises(ValueError, match="`shape` must be three positive integers"):
         tabulate_merl(Lambertian(0.5), shape=(4, 0, 4))
-    with pytest.raises(ValueError, match="\\(\\.\\.\\., 1\\) or \\(\\.\\.\\., 3\\)"):
+    with pytest.raises(ValueError, match="\\(\\.\\.\\., 1\\) or \\(\\.\\.\\., 3\\).*got \\(2, 2, 2, 2\\)"):
         tabulate_merl(Lambertian([0.1, 0.2]), shape=(2, 2, 2))
+    with pytest.raises(ValueError, match="got float"):
+        tabulate_merl(lambda wi, wo: 0.5, shape=(2, 2, 2))
+    with pytest.raises(TypeError, match="at least one tensor"):
+        half_diff_to_dirs(0.1, 0.0, 0.2, 0.3)
     with pytest.raises(TypeError, match="`model` must be callable"):
         tabulate_merl(0.5)
     with pytest.raises(ValueError, match="`wi` must have shape"):
@@ -278,6 +282,10 @@ def test_tabulated_lambertian_returns_albedo_over_pi(interpolation):
     assert 0.3 < float(b.measured.double().mean()) < 0.95
     zero = tabulate_merl(Lambertian(albedo), shape=(30, 30, 60), below_horizon="zero")
     assert bool(zero.measured.all())
+    # the stored scale is the table's own: any positive scale reproduces the model
+    other = tabulate_merl(Lambertian(albedo), shape=(4, 4, 8), scale=(0.5, 2.0, 1.0))
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=D64)
+    assert torch.allclose(other(z, z), albedo / math.pi, rtol=1e-6)
 
 
 @pytest.fixture(scope="module")

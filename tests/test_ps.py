@@ -184,18 +184,8 @@ def test_bad_inputs_give_clear_errors():
         ps.solve_hsh(img[..., 0], l)
     with pytest.raises(ValueError, match="mask"):
         ps.solve_hsh(img, l, mask=torch.ones(11, dtype=torch.bool))
-    with pytest.warns(UserWarning, match=r"8 of the 8 `lights` are at or below the horizon"):
+    with pytest.warns(UserWarning, match=r"8 of the 8 `lights` are at or below the horizon.*camera\): they light only .* lights' frame \(a sign"):
         ps.lambertian_ls(img, -l)  # a flipped frame is said (the loaders refuse such lights)
-    # one call that reads the lights several times (fit and held-out check) says it once, at the caller's line
-    import warnings
-
-    flipped = l.clone()
-    flipped[0, 2] = -flipped[0, 2]
-    with warnings.catch_warnings(record=True) as seen:
-        warnings.simplefilter("default")
-        ps.holdout_evaluation(img, flipped, holdout=2, seed=0, order=1)
-    horizon = [w for w in seen if "below the horizon" in str(w.message)]
-    assert len(horizon) == 1 and horizon[0].filename == __file__, [(w.filename, str(w.message)) for w in seen]
     # the two layout mistakes name the layout: lights on another axis, grey images without a channel axis
     img4 = img.reshape(8, 2, 5, img.shape[-1])
     with pytest.raises(ValueError, match=r"\(L, H, W, C\) .* \(if its axis 2, of size 8, holds the lights, move it first\)"):
@@ -210,10 +200,29 @@ def test_bad_inputs_give_clear_errors():
         ps.holdout_evaluation(img, l, holdout=6)
     with pytest.raises(ValueError, match="intensities"):
         ps.robust_lambertian(img, l, intensities=torch.ones(5, dtype=DT))
+    with pytest.raises(ValueError, match="intensities"):
+        ps.robust_lambertian(img, l, intensities=torch.ones(5, 3, dtype=DT))
+    with pytest.raises(ValueError, match="^`lights` contains a zero-length direction$"):
+        ps.solve_hsh(img, torch.cat([l[:7], torch.zeros(1, 3, dtype=DT)]))
     with pytest.raises(ValueError, match="drop_dark"):
         ps.robust_lambertian(img, l, drop_dark=0.7, drop_bright=0.5)
     with pytest.raises(TypeError, match="order"):
         ps.solve_hsh(img, l, order=2.5)
+
+
+def test_horizon_warning_is_said_once_at_the_callers_line():
+    """One call that reads the lights several times (fit and held-out check) says it once, at the caller's line."""
+    import warnings
+
+    n, l = _scene(10, 8)
+    img = render(n, l, Lambertian(0.5))
+    flipped = l.clone()
+    flipped[0, 2] = -flipped[0, 2]
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("default")
+        ps.holdout_evaluation(img, flipped, holdout=2, seed=0, order=1)
+    horizon = [w for w in seen if "below the horizon" in str(w.message)]
+    assert len(horizon) == 1 and horizon[0].filename == __file__, [(w.filename, str(w.message)) for w in seen]
 
 
 @pytest.mark.parametrize("order", [0, 1, 2, 3, 5])
@@ -271,6 +280,10 @@ def test_noise_estimate_ignores_object_pixels_left_outside_the_mask():
         d = prepare_inputs(img, l, mask=m)
         _, info = ps.observation_weights(d.y, d.y * d.intensities, d.background)
         assert 0.7 * sigma < info["noise_sigma"] < 1.4 * sigma, info["noise_sigma"]
+    bg = d.background.clone()
+    bg[:3] = float("nan")  # non-finite background rows are left out of the estimate
+    assert ps.observation_weights(d.y, d.y * d.intensities, bg)[1]["noise_sigma"] == pytest.approx(
+        ps.observation_weights(d.y, d.y * d.intensities, d.background[3:])[1]["noise_sigma"], rel=1e-12)
 
 
 def test_a_lit_background_is_reported_not_silently_used_as_noise():
@@ -345,6 +358,74 @@ def test_safe_cholesky_jitters_only_the_failing_matrices():
     assert torch.equal(L[keep], good[keep])  # the other pixels of the batch are untouched
     assert torch.isfinite(L[2]).all()
     assert torch.allclose(L[2] @ L[2].T, bad[2], atol=1e-6)
+
+
+@pytest.mark.parametrize("M", [1, 2, 3, 5])
+def test_small_solve_solves_spd_systems_of_every_size(M):
+    from torch_hsh.ps.optim import small_solve
+
+    g = torch.Generator().manual_seed(M)
+    A = torch.randn(6, M, M, generator=g, dtype=DT)
+    G = A @ A.transpose(1, 2) + 0.5 * torch.eye(M, dtype=DT)
+    rhs = torch.randn(6, M, 3, generator=g, dtype=DT)
+    x = small_solve(G, rhs)
+    assert x.shape == rhs.shape and torch.allclose(G @ x, rhs, atol=1e-10)
+
+
+def test_solve_weights_of_a_pixel_without_observations_are_zero():
+    from torch_hsh.ps.optim import _ridge_diag, solve_weights
+
+    g = torch.Generator().manual_seed(0)
+    for M in (1, 3):
+        Psi, y = torch.randn(2, M, 9, generator=g, dtype=DT), torch.randn(2, 3, 9, generator=g, dtype=DT)
+        w = torch.ones(2, 9, dtype=DT)
+        w[1] = 0.0  # every observation of pixel 1 masked: the ridge alone defines its weights
+        W = solve_weights(Psi, w, y, _ridge_diag(Psi, w, 1e-3))[0]
+        assert torch.isfinite(W).all() and torch.equal(W[1], torch.zeros_like(W[1]))
+
+
+def test_cone_candidates_lie_on_evenly_spread_rings():
+    from torch_hsh.ps.optim import _cone_candidates
+
+    n0 = torch.nn.functional.normalize(torch.randn(7, 3, generator=torch.Generator().manual_seed(0), dtype=DT), dim=-1)
+    cands = _cone_candidates(n0, (10.0, 25.0), 6)
+    assert len(cands) == 12
+    for r, ang in enumerate((10.0, 25.0)):
+        ring = torch.stack(cands[6 * r:6 * r + 6])
+        assert torch.allclose(ring.norm(dim=-1), torch.ones(6, 7, dtype=DT))
+        assert torch.allclose((ring * n0).sum(-1), torch.full((6, 7), math.cos(math.radians(ang)), dtype=DT))
+        assert torch.allclose(ring.sum(0), 6 * math.cos(math.radians(ang)) * n0)  # azimuths evenly spread
+
+
+def test_lm_accept_bounds_the_damping():
+    from torch_hsh.ps.optim import lm_accept
+
+    idx = torch.arange(2)
+    n = torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=DT)
+    cost, mu = torch.tensor([1.0, 1.0], dtype=DT), torch.tensor([1e9, 1e-9], dtype=DT)
+    active = torch.ones(2, dtype=torch.bool)
+    acc = lm_accept(idx, n, cost, mu, active, n.clone(), n.clone(), torch.tensor([2.0, 0.5], dtype=DT),
+                    torch.full((2, 1), 1.0, dtype=DT), 1e-5)
+    assert acc.tolist() == [False, True] and cost.tolist() == [1.0, 0.5]
+    assert mu.tolist() == [1e9, 1e-9]  # rejected at the cap, accepted at the floor: the damping stays in [1e-9, 1e9]
+    assert active.tolist() == [False, True]
+
+
+def test_lm_independent_steps_at_most_max_step():
+    from torch_hsh.ps.design import ridge_profile
+    from torch_hsh.ps.optim import PixelProblem, lm_independent
+
+    n, l = _scene(60, 24, 23)
+    img = render(n, l, Lambertian(torch.full((60, 3), 0.5, dtype=DT)))
+    ch = PixelProblem(img.permute(1, 0, 2), torch.ones(60, 24, dtype=DT), l, torch.tensor([0.0, 0.0, 1.0], dtype=DT),
+                      1, ridge_profile(1, DT, "cpu"), 1e-3)
+    start = torch.nn.functional.normalize(n + 0.6 * torch.randn(n.shape, generator=torch.Generator().manual_seed(1),
+                                                                dtype=DT), dim=-1)
+    ch.set_ridge_scale(start)
+    moved = ps.angular_error(lm_independent(ch, start, 1, max_step=0.05)[0], start)  # degrees
+    cap = math.degrees(math.atan(0.05))
+    assert (moved <= cap + 1e-6).all()
+    assert (moved > cap - 1e-6).float().mean() > 0.8  # far from the optimum, most steps are capped
 
 
 def _quick_specular_problem():
@@ -559,3 +640,42 @@ def test_holdout_evaluation_has_one_path():
 
     assert not hasattr(result, "holdout_evaluation")  # one name per thing: torch_hsh.ps.holdout_evaluation
     assert not hasattr(ps, "hsh")  # the solver is torch_hsh.ps.solve_hsh
+
+
+def test_sample_quantile_and_sigma_helpers(monkeypatch):
+    from torch_hsh.ps import observations as obs
+
+    s = obs.strided_sample(torch.arange(100), 7)
+    assert s[0] == 0 and s[-1] == 99 and len(s) == 7 and (s.diff() >= 16).all()  # first and last, evenly spread
+    assert obs.robust_sigma(torch.zeros(0)) == 0.0
+    g = torch.randn(20000, generator=torch.Generator().manual_seed(0), dtype=DT)
+    assert abs(obs.robust_sigma(3.0 * g) - 3.0) < 0.1  # the MAD estimate of a Gaussian's sigma
+    x = torch.rand(7, 5, generator=torch.Generator().manual_seed(1), dtype=DT)
+    ref = torch.quantile(x, 0.3, dim=1, keepdim=True)
+    assert torch.equal(obs.row_quantile(x, 0.3), ref)
+    monkeypatch.setattr(obs, "QUANTILE_MAX_ELEMENTS", 10)  # two rows per chunk: the chunked path
+    assert torch.equal(obs.row_quantile(x, 0.3), ref)
+    assert obs._dark_background(torch.zeros(4, 0, 3)).shape == (0, 3)  # no background pixel
+
+
+def test_observe_reports_saturation_and_invalid_fractions():
+    from torch_hsh.ps.observations import observe
+
+    L, S = 12, 8
+    n, l = _scene(S * S, L, 32)
+    img = render(n, l, Lambertian(torch.full((S * S, 3), 0.7, dtype=DT))).reshape(L, S, S, 3)
+    img = img.clamp(max=0.15)  # a plateau: saturated
+    img[0, 0, 0] = float("nan")  # one invalid observation
+    info = observe(img, l, None, None, ps.Settings(noise_sigma=0.0)).info
+    sat = float((img.amax(-1) >= 0.15).sum()) / (S * S * L)
+    assert info["saturation_level"] == pytest.approx(0.15) and 0 < sat and info["saturated_fraction"] == pytest.approx(sat, rel=0.1)
+    assert info["invalid_fraction"] == pytest.approx(1 / (S * S * L))
+    assert observe(img, l, None, None, ps.Settings(noise_sigma=0.0)).weights.dtype == DT  # the data's dtype
+
+
+def test_observation_weights_drop_each_pixels_own_dark_observations():
+    y = torch.rand(4, 10, 3, generator=torch.Generator().manual_seed(2), dtype=DT) + 0.5
+    y[:2] *= 10.0  # two bright pixels: "dark" is relative to each pixel's own brightness
+    y[1, 3] = 0.01  # one dark observation of a bright pixel
+    w, info = ps.observation_weights(y, y, noise_sigma=0.0)
+    assert w[1, 3] == 0 and w.sum() == 4 * 10 - 1 and info["dark_fraction"] == pytest.approx(1 / 40)

@@ -24,7 +24,8 @@ survivors' names; ``mutmut show NAME`` inside that folder prints a survivor's di
     python tools/mutation_sample.py ps_optim --sample 100 --seed 1 --retest   # after adding tests
 
 A mutant already judged keeps its verdict (mutmut's cache) unless ``--retest`` names the sample's
-non-killed mutants again.
+non-killed mutants again; ``--retest`` also drops mutmut's test-to-function map, which it would otherwise
+keep for every test it has seen, changed or not.
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ from pathlib import Path
 from typing import Dict, Iterable, List, Sequence, Tuple
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from mutate import MODULES, prepare  # noqa: E402
+from mutate import MODULES, prepare, results  # noqa: E402
 
 _NO_SUCH_MUTANT = "torch_hsh_mutation_sample_lists_only__no_such_mutant"
 DETECTED = ("killed", "timeout")
@@ -96,18 +97,10 @@ def format_summary(module: str, t: Dict[str, object], command: str) -> str:
         f"(killed {t['killed']}, timeout {t['timeout']}, survived {t['survived']}, suspicious {t['suspicious']}); "
         f"no tests {t['no_tests']}, other {t['other']}; "
         f"score {100 * t['score']:.1f} %, Wilson 95 % [{100 * lo:.1f}, {100 * hi:.1f}] %\n"
+        f"  {t['mutants_total']} mutants in all; ran {t['ran']} of the sample in {t['run_seconds']} s "
+        f"({t['seconds']} s with the generation and the clean test runs)\n"
         f"  command: {command}\n"
     )
-
-
-def parse_results(text: str) -> Dict[str, str]:
-    """``mutmut results --all true`` output (``    name: status`` lines) as {name: status}."""
-    out = {}
-    for line in text.splitlines():
-        if ":" in line and line.startswith(" "):
-            name, status = line.rsplit(":", 1)
-            out[name.strip()] = status.strip()
-    return out
 
 
 def _mutmut(work: Path, *args: str, capture: bool = False) -> subprocess.CompletedProcess:
@@ -116,34 +109,36 @@ def _mutmut(work: Path, *args: str, capture: bool = False) -> subprocess.Complet
                           capture_output=capture, text=True)
 
 
-def statuses(work: Path) -> Dict[str, str]:
-    return parse_results(_mutmut(work, "results", "--all", "true", capture=True).stdout)
-
-
 def generate(work: Path, max_children: int) -> Dict[str, str]:
     """Generate the mutants and the test map (a run that matches no mutant), then list every mutant."""
     r = _mutmut(work, "run", "--max-children", str(max_children), _NO_SUCH_MUTANT, capture=True)
-    found = statuses(work)
-    if not found:
+    found = results(work)
+    # the expected stop is the name filter's; a failing stats run (a test that fails under mutmut) stops earlier
+    if not found or "nothing matches" not in r.stdout + r.stderr:
         sys.stderr.write(r.stdout[-4000:] + r.stderr[-4000:])
-        raise SystemExit(f"mutmut generated no mutants in {work}")
+        raise SystemExit(f"mutmut stopped before the mutants were listed in {work} (its output above)")
     return found
 
 
 def run_module(name: str, n: int, seed: int, max_children: int, retest: bool, command: str) -> Dict[str, object]:
     work = prepare(name)
+    if retest:  # mutmut re-maps only new tests to the functions they call: a changed test keeps its old map
+        (work / "mutants" / "mutmut-stats.json").unlink(missing_ok=True)
     t0 = time.perf_counter()
     before = generate(work, max_children)
     chosen = sample_names(before, n, seed)
     todo: Sequence[str] = [m for m in chosen if before[m] == "not checked"
                            or (retest and before[m] not in DETECTED + ("no tests",))]
     print(f"{name}: {len(before)} mutants, sample of {len(chosen)} (seed {seed}); running {len(todo)}", flush=True)
+    t1 = time.perf_counter()
     for i in range(0, len(todo), 200):  # keep the command line short
-        _mutmut(work, "run", "--max-children", str(max_children), *todo[i:i + 200])
-    after = statuses(work)
+        rc = _mutmut(work, "run", "--max-children", str(max_children), *todo[i:i + 200]).returncode
+        if rc:
+            print(f"{name}: mutmut run returned {rc} (its output above)", file=sys.stderr, flush=True)
+    after = results(work)
     t = tally({m: after.get(m, "not checked") for m in chosen})
-    t.update(module=name, mutants_total=len(before), seed=seed, command=command,
-             seconds=round(time.perf_counter() - t0))
+    t.update(module=name, mutants_total=len(before), seed=seed, command=command, ran=len(todo),
+             seconds=round(time.perf_counter() - t0), run_seconds=round(time.perf_counter() - t1))
     text = format_summary(name, t, command)
     print(text, flush=True)
     (work / "sample_summary.txt").write_text(text + "  survivors: " + " ".join(t["survivors"]) + "\n")
