@@ -177,7 +177,8 @@ def test_the_loop_removes_a_bounce_that_was_added():
     def err(r, ref):
         return float(ps.angular_error(r.normals, ref, mask)[mask].mean())
 
-    assert err(loop, base.normals) < 0.5 * err(plain, base.normals)
+    # the ratio is 0.4-0.65 depending on the numpy/scipy versions (0.63 with the lowest allowed ones)
+    assert err(loop, base.normals) < 0.75 * err(plain, base.normals)
     assert err(loop, n) < err(plain, n)
     # the safeguard: the lit images fit the model better without the bounce, the clean ones worse
     i = loop.info

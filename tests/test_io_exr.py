@@ -141,7 +141,8 @@ def test_stack_of_mixed_images_and_a_binary_header_attribute_name_the_file(tmp_p
     k = d.find(b"torch_hsh_colors\x00string\x00") + len(b"torch_hsh_colors\x00")
     d[k + 4:k + 6] = b"\xff\xf0"  # the attribute's type name is no longer UTF-8: UnicodeDecodeError on access
     f.write_bytes(bytes(d))
-    with pytest.raises(ValueError, match=r"attr\.exr: corrupt header: an attribute is not UTF-8 text"):
+    # the lowest OpenEXR fails at open, a newer one on access: both must name the file
+    with pytest.raises(ValueError, match=r"attr\.exr: "):
         read_coefficient_maps_exr(f)
 
 
