@@ -12,7 +12,8 @@ Fixtures return *factories* so each test picks its own sizes:
   on the upper hemisphere by default, kept away from the horizon and the pole.
 
 Every test starts from the same global torch seed (the autouse fixture ``_seed_torch``), so a test
-that draws without its own generator still sees the same numbers on every run and in any order.
+that draws without its own generator still sees the same numbers on every run and in any order; the
+hypothesis tests are derandomized (the profile ``torch_hsh``) for the same reason.
 """
 from __future__ import annotations
 
@@ -21,6 +22,14 @@ import math
 import numpy as np
 import pytest
 import torch
+
+try:  # hypothesis draws the same examples on every run (CI must not depend on the draw)
+    from hypothesis import settings as _hyp_settings
+
+    _hyp_settings.register_profile("torch_hsh", derandomize=True, database=None, deadline=None)
+    _hyp_settings.load_profile("torch_hsh")
+except ImportError:  # pragma: no cover - hypothesis is in the test extra
+    pass
 
 
 def _hemi_quadrature(nz: int, nphi: int, dtype=torch.float64):
