@@ -101,7 +101,7 @@ def sweep(target: PathLike) -> None:
             remove(p)
 
 
-def new_temp(target: PathLike, folder: bool = False, kind: str = "partial") -> Path:
+def new_temp(target: PathLike, folder: bool = False) -> Path:
     """Sweep ``target``'s stale temporaries, then create an empty temporary file (or folder) beside it, named
     ``.NAME.PID.HEX.partial``, with the mode ``open()`` / ``mkdir()`` give under the umask. Call it with
     :func:`signals_held` and assign the result inside that block, so that no interrupt falls in between.
@@ -112,7 +112,7 @@ def new_temp(target: PathLike, folder: bool = False, kind: str = "partial") -> P
     """
     target = Path(os.path.abspath(target))
     sweep(target)
-    path = target.parent / f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.{kind}"
+    path = target.parent / f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.partial"
     if folder:
         os.mkdir(path, 0o777)
     else:

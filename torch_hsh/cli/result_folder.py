@@ -190,12 +190,6 @@ class _Staging:
             self.path = None
 
 
-def _umask() -> int:
-    from ..io.merl import _current_umask
-
-    return _current_umask()
-
-
 def _jsonable(x):
     """Plain JSON values: NaN/Inf -> None, tensors/arrays -> lists, numpy scalars -> Python."""
     if isinstance(x, dict):
